@@ -1,0 +1,89 @@
+"""Run time against error: the 2-D Taylor-Green vortex on exactly the work the established
+SPH codes were measured on (../shared/PERF.md): unit periodic box, Re = 100, U = 1,
+rho0 = 1, c0 = 10 U, lattice start, t_end = 1, nx in {50, 100, 200}.
+
+    python scripts/bench.py            # all rows, float64 and float32 (CUDA rows when present)
+    python scripts/bench.py --quick    # nx = 50 only
+
+linf = |max|u|(t_end) / (U exp(-8 pi^2 t / Re)) - 1|;
+L1 = mean | |u_i| - |u_exact(x_i)| | / mean |u_exact(x_i)|.
+"loop wall" times the time loop only; "setup" (scene, first neighbour build, and the
+torch.compile of the pair loops when on) is reported separately.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from torchsph.config import load_case  # noqa: E402
+from torchsph.runner import make_simulation, run_steps  # noqa: E402
+from torchsph.scenes import taylor_green_exact  # noqa: E402
+
+CASE = Path(__file__).resolve().parents[1] / "cases" / "taylor_green_2d"
+
+
+def tg_errors(sim, info, t):
+    s = sim.state
+    exact_max = info["U"] * math.exp(-8.0 * math.pi**2 * info["nu"] * t / info["L"] ** 2)
+    speed = torch.sqrt((s.v * s.v).sum(-1))
+    ue = taylor_green_exact(s.x, t, info["L"], info["U"], info["nu"])
+    se = torch.sqrt((ue * ue).sum(-1))
+    linf = abs(float(speed.max()) / exact_max - 1.0)
+    l1 = float((speed - se).abs().mean() / se.mean())
+    return linf, l1
+
+
+def run_tg(nx, dtype, device, t_end, compile, overrides=()):
+    _, cfg = load_case(CASE, [f"scene.nx={nx}", *overrides])
+    t0 = time.perf_counter()
+    scene, sim = make_simulation(cfg, dtype=dtype, device=device, compile=compile)
+    if compile:  # compile outside the timed loop: two throw-away steps on a copy (the
+        _, warm = make_simulation(cfg, dtype=dtype, device=device, compile=True)  # compiled
+        run_steps(warm, steps=2)  # code is cached on the functions and reused by ``sim``)
+    if device == "cuda":
+        torch.cuda.synchronize()
+    setup = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    run_steps(sim, t_end=t_end)
+    if device == "cuda":
+        torch.cuda.synchronize()
+    wall = time.perf_counter() - t1
+    linf, l1 = tg_errors(sim, scene.info, t_end)
+    return dict(nx=nx, N=sim.state.n, steps=sim.step, wall=wall, setup=setup,
+                pss=sim.state.n * sim.step / wall, linf=linf, l1=l1)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="nx = 50 rows only")
+    ap.add_argument("--nx", type=int, nargs="*", default=None)
+    ap.add_argument("--t-end", type=float, default=1.0)
+    ap.add_argument("--no-compile", action="store_true", help="eager mode (no torch.compile)")
+    ap.add_argument("--dtype", choices=("float64", "float32"), nargs="*", default=["float64", "float32"])
+    ap.add_argument("--device", nargs="*", default=None)
+    ap.add_argument("--set", dest="overrides", action="append", default=[])
+    a = ap.parse_args(argv)
+    nxs = a.nx or ([50] if a.quick else [50, 100, 200])
+    devices = a.device or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
+    compile = not a.no_compile
+    print(f"# torchsph Taylor-Green benchmark: t_end = {a.t_end}, torch {torch.__version__}, "
+          f"{torch.get_num_threads()} threads, compile = {compile}")
+    print("| device | dtype | nx | N | steps | loop wall s | setup s | particle-steps/s | linf | L1 |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for device in devices:
+        for dt in a.dtype:
+            for nx in nxs:
+                r = run_tg(nx, getattr(torch, dt), device, a.t_end, compile, a.overrides)
+                print(f"| {device} | {dt} | {r['nx']} | {r['N']} | {r['steps']} | {r['wall']:.1f} | "
+                      f"{r['setup']:.1f} | {r['pss']:.3g} | {r['linf']:.4f} | {r['l1']:.4f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,56 @@
+"""The CLI runs a case and writes HDF5 snapshots, an XDMF that names them, and summary.json."""
+import json
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+
+import h5py
+import numpy as np
+
+from conftest import CASES, ROOT
+
+DATASETS = {"position", "velocity", "density", "pressure", "temperature", "phase", "id"}
+
+
+def test_cli_run_writes_outputs(tmp_path):
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "torchsph", str(CASES / "poiseuille_2d"), "--out", str(out),
+                        "--steps", "30", "--dtype", "float32", "--set", "run.output_interval_s=0.005"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("n_particles", "steps", "t_final_s", "wall_s", "particle_steps_per_s", "device", "dtype",
+                "dt_binding_limit"):
+        assert key in summary
+    assert summary["steps"] == 30 and summary["dtype"] == "float32" and summary["device"] == "cpu"
+    assert summary["dt_binding_limit"] == "viscous"
+    snaps = sorted(out.glob("snap_*.h5"))
+    assert len(snaps) >= 2
+    with h5py.File(snaps[-1]) as f:
+        assert set(f.keys()) == DATASETS
+        n = summary["n_particles"]
+        assert f["position"].shape == (n, 3) and f["velocity"].shape == (n, 3)
+        assert f["density"].dtype == np.float32
+        assert np.all(np.diff(f["id"][()]) == 1)  # written in id order
+        assert abs(f.attrs["time"] - summary["t_final_s"]) < 1e-12
+    tree = ET.parse(out / "particles.xdmf")
+    grids = tree.getroot().findall(".//Grid[@GridType='Uniform']")
+    assert len(grids) == len(snaps)
+    for g in grids:
+        for item in g.iter("DataItem"):
+            fname, path = item.text.split(":")
+            assert (out / fname).exists()
+            with h5py.File(out / fname) as f:
+                assert path.lstrip("/") in f
+                assert list(f[path.lstrip("/")].shape) == [int(d) for d in item.get("Dimensions").split()]
+    assert not list(out.glob("*.tmp"))
+
+
+def test_cli_reports_blow_up_as_one_line(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "torchsph", str(CASES / "taylor_green_2d"), "--out", str(tmp_path),
+                        "--steps", "300", "--quiet", "--set", "scene.nx=20", "--set", "numerics.dt_s=0.02",
+                        "--set", "numerics.allow_unstable_dt=true"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 3
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "blow-up at step" in lines[0] and "largest term" in lines[0]

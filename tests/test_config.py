@@ -1,0 +1,89 @@
+"""Malformed case files give one-line errors naming the key, the value and what is allowed."""
+import subprocess
+import sys
+import tomllib
+
+import pytest
+
+from conftest import CASES, ROOT
+from torchsph.config import CaseError, load_case
+
+GOOD = (CASES / "taylor_green_2d" / "case.toml").read_text()
+
+
+def with_edit(text, old, new):
+    assert old in text, old
+    return text.replace(old, new, 1)
+
+
+BAD = {
+    "unknown_key": (with_edit(GOOD, "nx = 50", "nx = 50\nnxx = 3"), ["unknown key [scene] nxx", "allowed"]),
+    "unknown_section": (GOOD + "\n[solver]\nx = 1\n", ["unknown section [solver]"]),
+    "negative_density": (with_edit(GOOD, "rho0_kg_m3 = 1.0", "rho0_kg_m3 = -1.0"),
+                         ["[fluid] rho0_kg_m3 = -1.0", "must be a number > 0"]),
+    "zero_sound_speed": (with_edit(GOOD, "c0_m_s = 10.0", "c0_m_s = 0"), ["[fluid] c0_m_s = 0", "> 0"]),
+    "string_for_int": (with_edit(GOOD, "nx = 50", 'nx = "fifty"'), ['[scene] nx = "fifty"', "an integer"]),
+    "float_for_int": (with_edit(GOOD, "nx = 50", "nx = 50.5"), ["[scene] nx = 50.5", "an integer"]),
+    "bad_kernel": (with_edit(GOOD, 'kernel = "wendland_c2"', 'kernel = "gaussian"'),
+                   ['[numerics] kernel = "gaussian"', "one of"]),
+    "bad_scene_type": (with_edit(GOOD, 'type = "taylor_green"', 'type = "dam_break"'),
+                       ['[scene] type = "dam_break"', "one of"]),
+    "wrong_vector_length": (with_edit(GOOD, "viscosity_Pa_s = 0.01", "viscosity_Pa_s = 0.01\ngravity_m_s2 = [0, 0, -9.81]"),
+                            ["[fluid] gravity_m_s2 = [0, 0, -9.81]", "list of 2 numbers"]),
+    "missing_required": (with_edit(GOOD, "nx = 50            # particles per side\n", ""),
+                         ["missing required key [scene] nx"]),
+    "bool_for_float": (with_edit(GOOD, "t_end_s = 1.0", "t_end_s = true"), ["[run] t_end_s = true", "a number"]),
+    "negative_viscosity": (with_edit(GOOD, "viscosity_Pa_s = 0.01", "viscosity_Pa_s = -0.01"),
+                           ["[fluid] viscosity_Pa_s = -0.01", ">= 0"]),
+    "h_out_of_range": (with_edit(GOOD, "h_over_dx = 1.3", "h_over_dx = 4.0"), ["[numerics] h_over_dx = 4.0", "<= 2.5"]),
+    "bad_dtype": (with_edit(GOOD, 'dtype = "float64"', 'dtype = "float16"'), ['[run] dtype = "float16"', "one of"]),
+    "both_end_conditions": (with_edit(GOOD, "t_end_s = 1.0", "t_end_s = 1.0\nsteps = 10"),
+                            ["give exactly one of t_end_s or steps"]),
+    "box_too_small": (with_edit(GOOD, "nx = 50", "nx = 4"), ["[scene] nx gives 4 particles", "must be >="]),
+    "not_toml": ("[scene\ntype = 1", ["not valid TOML"]),
+    "wrong_dim": (with_edit(GOOD, "dim = 2", "dim = 3"), ["[scene] dim = 3", "taylor_green"]),
+    "section_not_table": (with_edit(GOOD, "[run]\n", "run = 3\n[runx]\n"), ["run"]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD))
+def test_malformed_case_one_line_error(name, tmp_path):
+    text, parts = BAD[name]
+    (tmp_path / "case.toml").write_text(text)
+    with pytest.raises(CaseError) as e:
+        load_case(tmp_path)
+    msg = str(e.value)
+    assert "\n" not in msg
+    assert str(tmp_path / "case.toml") in msg
+    for p in parts:
+        assert p in msg, msg
+
+
+def test_at_least_ten_distinct_malformed_cases():
+    assert len(BAD) >= 10
+
+
+def test_good_cases_load():
+    for case in sorted(p for p in CASES.iterdir() if (p / "case.toml").exists()):
+        path, cfg = load_case(case)
+        assert cfg["scene"]["type"] in {"taylor_green", "poiseuille", "hydrostatic_tank"}
+
+
+def test_overrides_are_validated():
+    _, cfg = load_case(CASES / "taylor_green_2d", ["scene.nx=64", "run.dtype=float32"])
+    assert cfg["scene"]["nx"] == 64 and cfg["run"]["dtype"] == "float32"
+    with pytest.raises(CaseError, match=r"\[scene\] nx = -3"):
+        load_case(CASES / "taylor_green_2d", ["scene.nx=-3"])
+    with pytest.raises(CaseError, match="expected section.key=value"):
+        load_case(CASES / "taylor_green_2d", ["nx=3"])
+
+
+def test_cli_prints_one_line_and_exits_2(tmp_path):
+    text, _ = BAD["negative_density"]
+    (tmp_path / "case.toml").write_text(text)
+    r = subprocess.run([sys.executable, "-m", "torchsph", str(tmp_path), "--quiet"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in r.stderr
+    assert lines[0].startswith("torchsph: error:") and "rho0_kg_m3 = -1.0" in lines[0]

@@ -1,0 +1,239 @@
+"""Case files: ``cases/NAME/case.toml``, read with tomllib and validated against a schema.
+
+Every error is a :class:`CaseError` whose message is one line naming the key, the value
+and what is allowed. The CLI prints it without a traceback.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+
+class CaseError(ValueError):
+    """A malformed case file or override (message: one line)."""
+
+
+_REQUIRED = object()
+
+
+@dataclass(frozen=True)
+class Key:
+    kind: str  # float | int | bool | str | vec
+    default: Any = _REQUIRED
+    gt: float | None = None  # value must be > gt
+    ge: float | None = None  # value must be >= ge
+    le: float | None = None  # value must be <= le
+    lt: float | None = None
+    choices: tuple | None = None
+    doc: str = ""
+
+    def allowed(self) -> str:
+        if self.choices is not None:
+            return "one of " + ", ".join(repr(c) for c in self.choices)
+        parts = {"float": "a number", "int": "an integer", "bool": "true or false",
+                 "str": "a string", "vec": "a list of numbers"}[self.kind]
+        bounds = []
+        if self.gt is not None:
+            bounds.append(f"> {self.gt:g}")
+        if self.ge is not None:
+            bounds.append(f">= {self.ge:g}")
+        if self.lt is not None:
+            bounds.append(f"< {self.lt:g}")
+        if self.le is not None:
+            bounds.append(f"<= {self.le:g}")
+        return parts + (" " + " and ".join(bounds) if bounds else "")
+
+
+def _fmt(v) -> str:
+    if isinstance(v, str):
+        return repr(v).replace("'", '"')
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return repr(v)
+
+
+def _check_value(where: str, key: Key, v, dim: int | None):
+    bad = f"{where} = {_fmt(v)}: must be {key.allowed()}"
+    if key.kind == "bool":
+        if not isinstance(v, bool):
+            raise CaseError(bad)
+        return v
+    if key.kind == "str":
+        if not isinstance(v, str) or (key.choices is not None and v not in key.choices):
+            raise CaseError(bad)
+        return v
+    if key.kind == "vec":
+        if (not isinstance(v, list) or not all(isinstance(c, (int, float)) and not isinstance(c, bool)
+                                               for c in v)
+                or not all(math.isfinite(c) for c in v)):
+            raise CaseError(bad)
+        if dim is not None and len(v) != dim:
+            raise CaseError(f"{where} = {_fmt(v)}: must be a list of {dim} numbers (scene.dim = {dim})")
+        return [float(c) for c in v]
+    if key.kind == "int":
+        if not isinstance(v, int) or isinstance(v, bool):
+            raise CaseError(bad)
+    elif key.kind == "float":
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+            raise CaseError(bad)
+        v = float(v)
+    if key.choices is not None and v not in key.choices:
+        raise CaseError(bad)
+    if ((key.gt is not None and not v > key.gt) or (key.ge is not None and not v >= key.ge)
+            or (key.lt is not None and not v < key.lt) or (key.le is not None and not v <= key.le)):
+        raise CaseError(bad)
+    return v
+
+
+def validate_section(name: str, raw: dict, schema: dict[str, Key], dim: int | None = None) -> dict:
+    if not isinstance(raw, dict):
+        raise CaseError(f"[{name}] must be a table, got {_fmt(raw)}")
+    unknown = sorted(set(raw) - set(schema))
+    if unknown:
+        raise CaseError(f"unknown key [{name}] {unknown[0]} = {_fmt(raw[unknown[0]])} "
+                        f"(allowed: {', '.join(schema)})")
+    out = {}
+    for k, key in schema.items():
+        where = f"[{name}] {k}"
+        if k not in raw:
+            if key.default is _REQUIRED:
+                raise CaseError(f"missing required key {where} ({key.allowed()}; {key.doc})")
+            out[k] = copy.deepcopy(key.default)
+            if key.kind == "vec" and out[k] is None and dim is not None:
+                out[k] = [0.0] * dim
+            continue
+        out[k] = _check_value(where, key, raw[k], dim)
+    return out
+
+
+# --- the common sections ------------------------------------------------------
+FLUID = {
+    "rho0_kg_m3": Key("float", gt=0, doc="reference density"),
+    "c0_m_s": Key("float", gt=0, doc="artificial speed of sound (Mach <= 0.1 of the flow)"),
+    "viscosity_Pa_s": Key("float", ge=0, doc="dynamic viscosity"),
+    "gravity_m_s2": Key("vec", default=None, doc="gravity vector"),
+    "body_force_m_s2": Key("vec", default=None, doc="extra body acceleration, e.g. a channel drive"),
+    "gamma": Key("float", default=7.0, gt=0, doc="Tait exponent"),
+    "background_pressure_Pa": Key("float", default=0.0, ge=0, doc="added to the Tait pressure"),
+    "temperature_K": Key("float", default=300.0, gt=0, doc="initial temperature"),
+}
+
+NUMERICS = {
+    "kernel": Key("str", default="wendland_c2", choices=("wendland_c2", "cubic_spline"),
+                  doc="smoothing kernel"),
+    "h_over_dx": Key("float", default=1.5, ge=1.0, le=2.5, doc="smoothing length / spacing"),
+    "cfl": Key("float", default=0.25, gt=0, le=0.5, doc="acoustic CFL number"),
+    "skin_over_dx": Key("float", default=0.5, ge=0, le=2.0,
+                        doc="Verlet-list skin (0 = rebuild pairs every step)"),
+    "density_diffusion": Key("float", default=0.0, ge=0, le=1.0,
+                             doc="delta-SPH density diffusion coefficient (0 = off)"),
+    "shifting": Key("float", default=0.0, ge=0, le=1.0,
+                    doc="particle-shifting coefficient C (dr = -C h^2 grad C_i; 0 = off)"),
+    "compile": Key("bool", default=False,
+                   doc="fuse the pair loops with torch.compile (faster; first steps compile)"),
+    "damping_time_s": Key("float", default=0.0, ge=0,
+                          doc="settling time: velocities are damped for t < this (0 = off)"),
+    "dt_s": Key("float", default=None, gt=0, doc="fixed time step (omit for automatic)"),
+    "allow_unstable_dt": Key("bool", default=False, doc="accept a fixed dt above a stability limit"),
+    "max_compression": Key("float", default=0.3, gt=0, lt=1,
+                           doc="|rho/rho0 - 1| above which the run stops as blown up"),
+}
+
+RUN = {
+    "t_end_s": Key("float", default=None, gt=0, doc="simulated end time"),
+    "steps": Key("int", default=None, gt=0, doc="number of steps (instead of t_end_s)"),
+    "output_interval_s": Key("float", default=None, gt=0,
+                             doc="time between snapshots (default: t_end / 10)"),
+    "dtype": Key("str", default="float64", choices=("float64", "float32"), doc="float precision"),
+    "device": Key("str", default="cpu", choices=("cpu", "cuda"), doc="torch device"),
+}
+
+TOP = ("scene", "fluid", "numerics", "run")
+
+
+def _set_dotted(raw: dict, dotted: str, value_text: str):
+    if "=" in dotted and not value_text:
+        dotted, value_text = dotted.split("=", 1)
+    parts = dotted.strip().split(".")
+    if len(parts) != 2 or not all(parts):
+        raise CaseError(f"--set {dotted}: expected section.key=value, e.g. run.t_end_s=0.5")
+    try:
+        value = tomllib.loads(f"v = {value_text}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = value_text
+    raw.setdefault(parts[0], {})
+    if not isinstance(raw[parts[0]], dict):
+        raise CaseError(f"--set {dotted}: [{parts[0]}] is not a table")
+    raw[parts[0]][parts[1]] = value
+
+
+def apply_overrides(raw: dict, overrides: list[str] | None) -> dict:
+    raw = copy.deepcopy(raw)
+    for item in overrides or []:
+        if "=" not in item:
+            raise CaseError(f"--set {item}: expected section.key=value")
+        k, v = item.split("=", 1)
+        _set_dotted(raw, k, v)
+    return raw
+
+
+def load_raw(case_dir: str | Path) -> tuple[Path, dict]:
+    p = Path(case_dir)
+    path = p / "case.toml" if p.is_dir() else p
+    if not path.exists():
+        raise CaseError(f"{path}: no such case file (a case is a folder with case.toml)")
+    try:
+        with open(path, "rb") as f:
+            return path, tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise CaseError(f"{path}: not valid TOML: {e}") from None
+
+
+def validate(raw: dict) -> dict:
+    """Validate a raw case dict; returns the resolved configuration (defaults filled)."""
+    from .scenes import SCENES
+
+    unknown = sorted(set(raw) - set(TOP))
+    if unknown:
+        raise CaseError(f"unknown section [{unknown[0]}] (allowed: {', '.join(TOP)})")
+    for sec in TOP:
+        if sec not in raw and sec != "numerics":
+            raise CaseError(f"missing section [{sec}]")
+    scene_raw = raw["scene"]
+    if not isinstance(scene_raw, dict):
+        raise CaseError(f"[scene] must be a table, got {_fmt(scene_raw)}")
+    stype = scene_raw.get("type")
+    if stype not in SCENES:
+        raise CaseError(f"[scene] type = {_fmt(stype)}: must be one of "
+                        + ", ".join(repr(s) for s in SCENES))
+    spec = SCENES[stype]
+    dim = scene_raw.get("dim", spec.dims[0])
+    if dim not in spec.dims or isinstance(dim, bool):
+        raise CaseError(f"[scene] dim = {_fmt(dim)}: must be one of {', '.join(map(str, spec.dims))} "
+                        f"for scene type {stype!r}")
+    schema = {"type": Key("str", choices=tuple(SCENES)), "dim": Key("int", default=spec.dims[0]),
+              **spec.schema}
+    cfg = {"scene": validate_section("scene", scene_raw, schema, dim),
+           "fluid": validate_section("fluid", raw["fluid"], FLUID, dim),
+           "numerics": validate_section("numerics", raw.get("numerics", {}), NUMERICS, dim),
+           "run": validate_section("run", raw["run"], RUN, dim)}
+    run = cfg["run"]
+    if (run["t_end_s"] is None) == (run["steps"] is None):
+        raise CaseError("[run]: give exactly one of t_end_s or steps "
+                        f"(got t_end_s = {_fmt(run['t_end_s'])}, steps = {_fmt(run['steps'])})")
+    if spec.check is not None:
+        spec.check(cfg)
+    return cfg
+
+
+def load_case(case_dir: str | Path, overrides: list[str] | None = None) -> tuple[Path, dict]:
+    """Read, override and validate a case; errors name the file."""
+    path, raw = load_raw(case_dir)
+    try:
+        return path, validate(apply_overrides(raw, overrides))
+    except CaseError as e:
+        raise CaseError(f"{path}: {e}") from None

@@ -1,0 +1,164 @@
+"""Build a simulation from a validated case and run it with output and progress."""
+from __future__ import annotations
+
+import collections
+import math
+import time
+from pathlib import Path
+
+import torch
+
+from . import io as sio
+from .fluid import FluidParams, WeaklyCompressibleFluid
+from .kernels import make_kernel
+from .scenes import Scene, build_scene
+from .simulation import Simulation
+
+DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
+
+def make_simulation(cfg: dict, dtype=None, device=None, compile=None) -> tuple[Scene, Simulation]:
+    """Scene and solver for a validated configuration (see :func:`config.load_case`)."""
+    run, nm, fl = cfg["run"], cfg["numerics"], cfg["fluid"]
+    dtype = DTYPES[run["dtype"]] if dtype is None else dtype
+    device = run["device"] if device is None else device
+    scene = build_scene(cfg, dtype=dtype, device=device)
+    dim = cfg["scene"]["dim"]
+    h = nm["h_over_dx"] * scene.dx
+    kernel = make_kernel(nm["kernel"], dim)
+    prm = FluidParams(rho0=fl["rho0_kg_m3"], c0=fl["c0_m_s"], eta=fl["viscosity_Pa_s"],
+                      gravity=tuple(fl["gravity_m_s2"]), body_force=tuple(fl["body_force_m_s2"]),
+                      gamma=fl["gamma"], density_diffusion=nm["density_diffusion"],
+                      background_pressure=fl["background_pressure_Pa"], shifting=nm["shifting"])
+    compile = nm["compile"] if compile is None else compile
+    fluid = WeaklyCompressibleFluid(prm, kernel, h, scene.domain, compile=compile)
+    sim = Simulation(scene.state, fluid, scene.domain, skin=nm["skin_over_dx"] * scene.dx,
+                     cfl=nm["cfl"], dt_fixed=nm["dt_s"], allow_unstable_dt=nm["allow_unstable_dt"],
+                     max_compression=nm["max_compression"], dx=scene.dx,
+                     damping_time=nm["damping_time_s"])
+    return scene, sim
+
+
+class RunStats:
+    """Counts of binding limits, extreme dt and Mach over a run."""
+
+    def __init__(self):
+        self.limits = collections.Counter()
+        self.dt_min = math.inf
+        self.dt_max = 0.0
+        self.vmax = 0.0
+
+    def add(self, info):
+        self.limits[info.limit] += 1
+        self.dt_min = min(self.dt_min, info.dt)
+        self.dt_max = max(self.dt_max, info.dt)
+        self.vmax = max(self.vmax, info.vmax)
+
+
+def run_steps(sim: Simulation, t_end: float | None = None, steps: int | None = None,
+              callback=None, stats: RunStats | None = None):
+    """Advance to ``t_end`` (the last step is shortened to land on it) or by ``steps``."""
+    n0 = sim.step
+    while True:
+        if steps is not None and sim.step - n0 >= steps:
+            break
+        if t_end is not None and sim.t >= t_end * (1 - 1e-12):
+            break
+        dt, limit = sim.choose_dt()
+        if t_end is not None and sim.t + dt > t_end:
+            dt = t_end - sim.t
+        info = sim.advance(dt, limit)
+        if stats is not None:
+            stats.add(info)
+        if callback is not None:
+            callback(sim, info)
+
+
+def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, device=None,
+             dtype=None, progress=True) -> dict:
+    """Run a case with snapshots every output interval; returns the summary dict."""
+    from tqdm import tqdm
+
+    run = cfg["run"]
+    if device is not None:
+        run["device"] = device
+    if dtype is not None:
+        run["dtype"] = dtype
+    if t_end is None and steps is None:
+        t_end, steps = run["t_end_s"], run["steps"]
+    if run["device"] == "cuda" and not torch.cuda.is_available():
+        from .config import CaseError
+        raise CaseError("[run] device = \"cuda\": no CUDA device is available here (use cpu)")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
+    t_setup = time.perf_counter()
+    scene, sim = make_simulation(cfg)
+    setup_s = time.perf_counter() - t_setup
+    interval = run["output_interval_s"]
+    if interval is None:
+        interval = (t_end / 10.0) if t_end is not None else math.inf
+    every_steps = max(steps // 10, 1) if (steps is not None and run["output_interval_s"] is None) else None
+    snaps: list[tuple[float, str]] = []
+    fdt = sim.state.x.detach().cpu().numpy().dtype
+
+    def snapshot():
+        name = f"snap_{len(snaps):05d}.h5"
+        sio.write_snapshot(out_dir / name, sim.state, sim.t, sim.step)
+        snaps.append((sim.t, name))
+        sio.write_xdmf(out_dir / "particles.xdmf", snaps, sim.state.n, fdt)
+
+    snapshot()
+    next_out = [interval]
+    stats = RunStats()
+    n = sim.state.n
+    bar = tqdm(total=steps if steps is not None else t_end, disable=not progress,
+               unit="step" if steps is not None else "s", dynamic_ncols=True, mininterval=0.5,
+               bar_format="{l_bar}{bar}| {n:.4g}/{total:.4g} [{elapsed}<{remaining}{postfix}]")
+    t0 = time.perf_counter()
+
+    def callback(sim, info):
+        bar.update(1 if steps is not None else info.dt)
+        if sim.step % 20 == 0:
+            el = time.perf_counter() - t0
+            bar.set_postfix_str(f"step {sim.step} t={sim.t:.4g}s dt={info.dt:.3g}({info.limit}) "
+                                f"N={n} {n * sim.step / max(el, 1e-9):.3g} p-steps/s", refresh=False)
+        due = (every_steps is not None and sim.step % every_steps == 0) or \
+              (every_steps is None and sim.t >= next_out[0] * (1 - 1e-9))
+        if due:
+            snapshot()
+            next_out[0] += interval
+
+    try:
+        run_steps(sim, t_end=t_end, steps=steps, callback=callback, stats=stats)
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    if snaps[-1][0] != sim.t:
+        snapshot()
+    binding = stats.limits.most_common(1)[0][0] if stats.limits else sim.choose_dt()[1]
+    if binding == "fixed":
+        binding = f"fixed ({sim.binding_limit()[0]} limit binds)"
+    summary = {
+        "case": str(case_path),
+        "n_particles": n,
+        "n_fluid": sim.n_fluid,
+        "n_pairs": sim.n_pairs,
+        "steps": sim.step,
+        "t_final_s": sim.t,
+        "wall_s": wall,
+        "setup_s": setup_s,
+        "particle_steps_per_s": n * sim.step / wall if wall > 0 else None,
+        "device": str(sim.state.device),
+        "dtype": str(sim.state.dtype).replace("torch.", ""),
+        "dt_binding_limit": binding,
+        "dt_limit_counts": dict(stats.limits),
+        "dt_min_s": stats.dt_min if stats.dt_min < math.inf else None,
+        "dt_max_s": stats.dt_max,
+        "c0_m_s": sim.fluid.prm.c0,
+        "mach_max": stats.vmax / sim.fluid.prm.c0,
+        "neighbour_builds": sim.nl.n_builds,
+        "snapshots": len(snaps),
+        "torch": torch.__version__,
+    }
+    sio.write_json(out_dir / "summary.json", summary)
+    return summary

@@ -1,0 +1,239 @@
+"""Scene builders: a case's ``[scene]`` table turned into particles and a domain.
+
+Each scene declares its keys (validated in :mod:`torchsph.config`), the dimensions it
+supports, a cross-key check, and a builder. No code per case: cases are TOML only.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from .config import CaseError, Key
+from .neighbors import Domain
+from .state import ParticleState, Phase
+
+
+@dataclass
+class Scene:
+    state: ParticleState
+    domain: Domain
+    dx: float
+    info: dict = field(default_factory=dict)
+
+
+@dataclass
+class SceneSpec:
+    schema: dict
+    dims: tuple
+    build: Callable
+    check: Callable | None = None
+    doc: str = ""
+
+
+def lattice(counts, dx, origin=None, dtype=torch.float64, device="cpu"):
+    """Cell-centred lattice points: origin + (k + 1/2) dx for k in range(count) per axis."""
+    axes = [(torch.arange(n, dtype=dtype, device=device) + 0.5) * dx for n in counts]
+    g = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, len(counts))
+    if origin is not None:
+        g = g + torch.as_tensor(origin, dtype=dtype, device=device)
+    return g
+
+
+def tait_density(p, fl):
+    """Inverse Tait EOS for initial conditions."""
+    B = fl["c0_m_s"] ** 2 * fl["rho0_kg_m3"] / fl["gamma"]
+    return fl["rho0_kg_m3"] * ((p - fl["background_pressure_Pa"]) / B + 1.0).clamp_min(1e-3) ** (
+        1.0 / fl["gamma"])
+
+
+def _support_cells(cfg) -> float:
+    """Search radius (kernel support + skin) in units of dx."""
+    nm = cfg["numerics"]
+    return 2.0 * nm["h_over_dx"] + nm["skin_over_dx"]
+
+
+def _need_periodic_span(cfg, n_cells: int, key: str):
+    need = 2.0 * _support_cells(cfg)
+    if n_cells < need:
+        raise CaseError(f"[scene] {key} gives {n_cells} particles along a periodic axis: must be "
+                        f">= {math.ceil(need)} (two kernel supports plus skin at h_over_dx = "
+                        f"{cfg['numerics']['h_over_dx']:g})")
+
+
+def _need_wall_layers(cfg):
+    need = math.ceil(2.0 * cfg["numerics"]["h_over_dx"])
+    if cfg["scene"]["wall_layers"] < need:
+        raise CaseError(f"[scene] wall_layers = {cfg['scene']['wall_layers']}: must be >= {need} "
+                        f"(walls must fill the kernel support of 2 h = "
+                        f"{2 * cfg['numerics']['h_over_dx']:g} dx)")
+
+
+# --- Taylor-Green vortex -------------------------------------------------------
+def taylor_green_exact(x, t, L, U, nu):
+    """Velocity field of the 2-D Taylor-Green vortex, u = -U cos(kx) sin(ky) e^{-2 k^2 nu t}."""
+    k = 2.0 * math.pi / L
+    decay = math.exp(-2.0 * k * k * nu * t)
+    u = -U * torch.cos(k * x[:, 0]) * torch.sin(k * x[:, 1]) * decay
+    v = U * torch.sin(k * x[:, 0]) * torch.cos(k * x[:, 1]) * decay
+    return torch.stack([u, v], dim=-1)
+
+
+def build_taylor_green(cfg, dtype, device) -> Scene:
+    sc, fl = cfg["scene"], cfg["fluid"]
+    L, nx, U = sc["length_m"], sc["nx"], sc["U_m_s"]
+    dx = L / nx
+    x = lattice((nx, nx), dx, dtype=dtype, device=device)
+    v = taylor_green_exact(x, 0.0, L, U, 0.0)
+    k = 2.0 * math.pi / L
+    rho0 = fl["rho0_kg_m3"]
+    p = -0.25 * rho0 * U * U * (torch.cos(2 * k * x[:, 0]) + torch.cos(2 * k * x[:, 1]))
+    p = p + fl["background_pressure_Pa"]
+    rho = tait_density(p, fl)
+    m = rho0 * dx * dx
+    st = ParticleState.create(x, v, rho, m, Phase.FLUID, T=fl["temperature_K"], p=p,
+                              dtype=dtype, device=device)
+    nu = fl["viscosity_Pa_s"] / rho0
+    return Scene(st, Domain([0.0, 0.0], [L, L], [True, True]), dx,
+                 {"L": L, "U": U, "nu": nu, "Re": U * L / nu if nu > 0 else float("inf")})
+
+
+def check_taylor_green(cfg):
+    _need_periodic_span(cfg, cfg["scene"]["nx"], "nx")
+
+
+# --- Poiseuille channel ----------------------------------------------------------
+def poiseuille_exact(y, t, H, F, nu, terms=200):
+    """Start-up Poiseuille flow between plates y = 0 and y = H driven by acceleration F."""
+    u = F / (2.0 * nu) * y * (H - y)
+    if t == math.inf:
+        return u
+    for n in range(terms):
+        k = 2 * n + 1
+        u = u - 4.0 * F * H * H / (nu * math.pi**3 * k**3) * torch.sin(k * math.pi * y / H) * \
+            math.exp(-(k * k) * math.pi**2 * nu * t / (H * H))
+    return u
+
+
+def wall_slabs(nx_len, layers, dx, H, dtype, device):
+    below = lattice((nx_len, layers), dx, origin=(0.0, -layers * dx), dtype=dtype, device=device)
+    above = lattice((nx_len, layers), dx, origin=(0.0, H), dtype=dtype, device=device)
+    return torch.cat([below, above])
+
+
+def build_poiseuille(cfg, dtype, device) -> Scene:
+    sc, fl = cfg["scene"], cfg["fluid"]
+    H, ny, layers = sc["height_m"], sc["n_height"], sc["wall_layers"]
+    dx = H / ny
+    nxl = round(sc["length_m"] / dx)
+    Lx = nxl * dx
+    xf = lattice((nxl, ny), dx, dtype=dtype, device=device)
+    xw = wall_slabs(nxl, layers, dx, H, dtype, device)
+    rho0 = fl["rho0_kg_m3"]
+    fluid = ParticleState.create(xf, torch.zeros_like(xf), rho0, rho0 * dx * dx, Phase.FLUID,
+                                 T=fl["temperature_K"], dtype=dtype, device=device)
+    wall = ParticleState.create(xw, torch.zeros_like(xw), rho0, rho0 * dx * dx, Phase.WALL,
+                                T=fl["temperature_K"], id=torch.arange(xw.shape[0]) + xf.shape[0],
+                                dtype=dtype, device=device)
+    st = ParticleState.cat([fluid, wall])
+    lo_y, hi_y = -layers * dx, H + layers * dx
+    nu = fl["viscosity_Pa_s"] / rho0
+    F = fl["body_force_m_s2"][0]
+    return Scene(st, Domain([0.0, lo_y], [Lx, hi_y], [True, False]), dx,
+                 {"H": H, "F": F, "nu": nu, "u_max": F * H * H / (8 * nu) if nu > 0 else math.inf})
+
+
+def check_poiseuille(cfg):
+    sc = cfg["scene"]
+    ny = sc["n_height"]
+    nxl = round(sc["length_m"] / (sc["height_m"] / ny))
+    _need_periodic_span(cfg, nxl, "length_m")
+    _need_wall_layers(cfg)
+    if cfg["fluid"]["viscosity_Pa_s"] <= 0:
+        raise CaseError("[fluid] viscosity_Pa_s = 0.0: must be > 0 for a Poiseuille channel")
+
+
+# --- hydrostatic tank -----------------------------------------------------------
+def build_hydrostatic_tank(cfg, dtype, device) -> Scene:
+    sc, fl = cfg["scene"], cfg["fluid"]
+    d = sc["dim"]
+    D, nd, layers = sc["fluid_depth_m"], sc["n_depth"], sc["wall_layers"]
+    dx = D / nd
+    nw = round(sc["fluid_width_m"] / dx)
+    nt = round(sc["tank_height_m"] / dx)
+    counts = [nw] * (d - 1) + [nd]
+    xf = lattice(counts, dx, dtype=dtype, device=device)
+    # walls: a box of particles (nw + 2 layers)^(d-1) x (nt + layers), minus the interior
+    box = lattice([nw + 2 * layers] * (d - 1) + [nt + layers], dx,
+                  origin=[-layers * dx] * d, dtype=dtype, device=device)
+    inside = torch.ones(box.shape[0], dtype=torch.bool, device=device)
+    for a in range(d - 1):
+        inside &= (box[:, a] > 0) & (box[:, a] < nw * dx)
+    inside &= box[:, d - 1] > 0
+    xw = box[~inside]
+    g = fl["gravity_m_s2"]
+    gz = -g[d - 1]
+    rho0 = fl["rho0_kg_m3"]
+    # hydrostatic equilibrium from the start: a particle whose lattice height is z0 carries
+    # the weight of the fluid above it, p = rho0 g (D - z0), so rho = rho_Tait(p); its
+    # height is compressed to match, z(z0) = int_0^z0 rho0 / rho(s) ds.
+    z0 = xf[:, d - 1].clone()
+    p = rho0 * gz * (D - z0) + fl["background_pressure_Pa"]
+    rho = tait_density(p, fl)
+    s = torch.linspace(0.0, D, 4001, dtype=torch.float64)
+    inv = rho0 / tait_density(rho0 * gz * (D - s) + fl["background_pressure_Pa"], fl)
+    zs = torch.cat([torch.zeros(1, dtype=torch.float64),
+                    torch.cumsum(0.5 * (inv[1:] + inv[:-1]) * (s[1:] - s[:-1]), 0)])
+    xf[:, d - 1] = torch.as_tensor(np.interp(z0.cpu().numpy(), s.numpy(), zs.numpy()),
+                                   dtype=dtype, device=device)
+    fluid = ParticleState.create(xf, torch.zeros_like(xf), rho, rho0 * dx**d, Phase.FLUID,
+                                 T=fl["temperature_K"], p=p, dtype=dtype, device=device)
+    wall = ParticleState.create(xw, torch.zeros_like(xw), rho0, rho0 * dx**d, Phase.WALL,
+                                T=fl["temperature_K"], id=torch.arange(xw.shape[0]) + xf.shape[0],
+                                dtype=dtype, device=device)
+    lo = [-layers * dx] * d
+    hi = [(nw + layers) * dx] * (d - 1) + [nt * dx]
+    return Scene(ParticleState.cat([fluid, wall]), Domain(lo, hi, [False] * d), dx,
+                 {"depth": D, "g": gz, "rho0": rho0, "z0": z0, "n_fluid": xf.shape[0]})
+
+
+def check_hydrostatic_tank(cfg):
+    sc, fl = cfg["scene"], cfg["fluid"]
+    d = sc["dim"]
+    g = fl["gravity_m_s2"]
+    if not g[d - 1] < 0 or any(c != 0 for c in g[:d - 1]):
+        raise CaseError(f"[fluid] gravity_m_s2 = {g}: a hydrostatic tank needs gravity along "
+                        "-z only (last component < 0)")
+    if sc["tank_height_m"] < sc["fluid_depth_m"]:
+        raise CaseError(f"[scene] tank_height_m = {sc['tank_height_m']}: must be >= fluid_depth_m "
+                        f"= {sc['fluid_depth_m']}")
+    _need_wall_layers(cfg)
+
+
+SCENES: dict[str, SceneSpec] = {
+    "taylor_green": SceneSpec(
+        {"length_m": Key("float", default=1.0, gt=0, doc="side of the periodic box"),
+         "nx": Key("int", gt=0, doc="particles per side"),
+         "U_m_s": Key("float", default=1.0, gt=0, doc="velocity amplitude")},
+        (2,), build_taylor_green, check_taylor_green, "2-D Taylor-Green vortex, periodic box"),
+    "poiseuille": SceneSpec(
+        {"height_m": Key("float", gt=0, doc="channel height"),
+         "length_m": Key("float", gt=0, doc="periodic channel length"),
+         "n_height": Key("int", ge=4, doc="particles across the channel"),
+         "wall_layers": Key("int", default=3, ge=1, doc="layers of wall particles")},
+        (2,), build_poiseuille, check_poiseuille, "body-force-driven channel between two walls"),
+    "hydrostatic_tank": SceneSpec(
+        {"fluid_width_m": Key("float", gt=0, doc="width of the fluid block (x, y)"),
+         "fluid_depth_m": Key("float", gt=0, doc="depth of the fluid"),
+         "tank_height_m": Key("float", gt=0, doc="height of the tank walls"),
+         "n_depth": Key("int", ge=2, doc="particles across the depth"),
+         "wall_layers": Key("int", default=3, ge=1, doc="layers of wall particles")},
+        (3, 2), build_hydrostatic_tank, check_hydrostatic_tank, "fluid at rest in a walled box"),
+}
+
+
+def build_scene(cfg, dtype=torch.float64, device="cpu") -> Scene:
+    return SCENES[cfg["scene"]["type"]].build(cfg, dtype, device)

@@ -1,0 +1,93 @@
+"""Particle state: one tensor per field, all on one device and in one float dtype."""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, fields
+
+import torch
+
+
+class Phase(enum.IntEnum):
+    """Material tag of a particle."""
+
+    FLUID = 0  # moves by the momentum equation
+    WALL = 1  # rigid boundary particle (Adami 2012 generalised wall condition)
+
+
+FLOAT_FIELDS = ("x", "v", "rho", "m", "p", "T")
+INT_FIELDS = ("phase", "id")
+
+
+@dataclass
+class ParticleState:
+    """Fields of N particles in d dimensions (SI units).
+
+    x, v: (N, d) position and velocity; rho, m, p, T: (N,) density, mass, pressure and
+    temperature; phase: (N,) int8 :class:`Phase`; id: (N,) int64 stable particle id.
+    """
+
+    x: torch.Tensor
+    v: torch.Tensor
+    rho: torch.Tensor
+    m: torch.Tensor
+    p: torch.Tensor
+    T: torch.Tensor
+    phase: torch.Tensor
+    id: torch.Tensor
+
+    def __post_init__(self):
+        n = self.x.shape[0]
+        for f in fields(self):
+            t = getattr(self, f.name)
+            if t.shape[0] != n:
+                raise ValueError(f"ParticleState: field {f.name} has {t.shape[0]} rows, expected {n}")
+
+    @property
+    def n(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def dim(self) -> int:
+        return self.x.shape[1]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.x.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.x.device
+
+    def to(self, device=None, dtype=None) -> "ParticleState":
+        kw = {}
+        for name in FLOAT_FIELDS:
+            kw[name] = getattr(self, name).to(device=device, dtype=dtype)
+        for name in INT_FIELDS:
+            kw[name] = getattr(self, name).to(device=device)
+        return ParticleState(**kw)
+
+    def clone(self) -> "ParticleState":
+        return ParticleState(**{f.name: getattr(self, f.name).clone() for f in fields(self)})
+
+    def select(self, index: torch.Tensor) -> "ParticleState":
+        return ParticleState(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+    @staticmethod
+    def cat(states: list["ParticleState"]) -> "ParticleState":
+        return ParticleState(**{f.name: torch.cat([getattr(s, f.name) for s in states])
+                                for f in fields(ParticleState)})
+
+    @staticmethod
+    def create(x, v, rho, m, phase, T=None, p=None, id=None, dtype=torch.float64,
+               device="cpu") -> "ParticleState":
+        """Build a state from array-likes; missing T/p default to 0 and ids to 0..N-1."""
+        f = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
+        x = f(x)
+        n = x.shape[0]
+        full = lambda a: f(a).expand(n).clone() if f(a).ndim == 0 else f(a)  # noqa: E731
+        return ParticleState(
+            x=x, v=f(v).reshape(x.shape).clone(), rho=full(rho), m=full(m),
+            p=full(0.0 if p is None else p), T=full(0.0 if T is None else T),
+            phase=torch.as_tensor(phase, dtype=torch.int8, device=device).expand(n).clone(),
+            id=(torch.arange(n, device=device) if id is None
+                else torch.as_tensor(id, dtype=torch.long, device=device)))
