@@ -35,7 +35,7 @@ BAD = {
     "bool_for_float": (with_edit(GOOD, "t_end_s = 1.0", "t_end_s = true"), ["[run] t_end_s = true", "a number"]),
     "negative_viscosity": (with_edit(GOOD, "viscosity_Pa_s = 0.01", "viscosity_Pa_s = -0.01"),
                            ["[fluid] viscosity_Pa_s = -0.01", ">= 0"]),
-    "h_out_of_range": (with_edit(GOOD, "h_over_dx = 1.3", "h_over_dx = 4.0"), ["[numerics] h_over_dx = 4.0", "<= 2.5"]),
+    "h_out_of_range": (with_edit(GOOD, "h_over_dx = 1.5", "h_over_dx = 4.0"), ["[numerics] h_over_dx = 4.0", "<= 2.5"]),
     "bad_dtype": (with_edit(GOOD, 'dtype = "float64"', 'dtype = "float16"'), ['[run] dtype = "float16"', "one of"]),
     "both_end_conditions": (with_edit(GOOD, "t_end_s = 1.0", "t_end_s = 1.0\nsteps = 10"),
                             ["give exactly one of t_end_s or steps"]),

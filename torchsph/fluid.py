@@ -82,31 +82,32 @@ def momentum_pairs(x, u_visc, rho, p, m, rows, nb, eta: float, kernel: Kernel, h
 
 
 def continuity_pairs(v, m, rho, rows, nb, dx, dWr, ff, delta_h_c0: float, rho0_over_c02: float,
-                     g, h: float):
+                     g, h: float, kernel: Kernel, W0: float, shift_coef: float):
     """sum_j m_j (u_i - u_j) . grad_i W_ij (3.7), plus, when ``delta_h_c0`` > 0, the
     delta-SPH density diffusion over fluid-fluid pairs (``ff``) with the hydrostatic
     part of the density difference removed (rho^H_j - rho^H_i = -rho0 g.(x_i - x_j) / c0^2),
-    so that a fluid at rest stays stratified."""
+    so that a fluid at rest stays stratified.
+
+    When ``shift_coef`` > 0 it also returns the particle-shifting displacement
+    -C h^2 sum_j V_j [1 + 0.2 (W_ij / W(dx0))^4] grad_i W_ij (Sun et al. 2017), which
+    reads the same neighbour data (else None)."""
     m_j = gather_nb(m, nb)
     val = m_j * dot(v.index_select(0, rows).unsqueeze(1) - gather_nb(v, nb), dx) * dWr
+    need_rho_j = delta_h_c0 > 0.0 or shift_coef > 0.0
+    rho_j = gather_nb(rho, nb) if need_rho_j else None
+    r2 = dot(dx, dx)
     if delta_h_c0 > 0.0:
-        rho_j = gather_nb(rho, nb)
         drho = rho_j - rho.index_select(0, rows).unsqueeze(1)
         if g is not None:
             drho = drho + rho0_over_c02 * dot(dx, g)
-        r2 = dot(dx, dx)
         # psi_ij . grad_i W_ij with psi = 2 (rho_j - rho_i) x_ji / (r^2 + 0.01 h^2)
         val = val + delta_h_c0 * 2.0 * drho * (-dWr) * r2 / (r2 + 0.01 * h * h) * (m_j / rho_j) * ff
-    return val.sum(1)
-
-
-def shifting_pairs(m, rho, nb, dx, dWr, kernel: Kernel, h: float, W0: float, coef: float):
-    """Particle shifting displacement -coef h^2 sum_j V_j [1 + 0.2 (W_ij / W(dx0))^4] grad_i W_ij
-    (Sun et al. 2017)."""
-    r = torch.sqrt(dot(dx, dx))
-    Wk = kernel.w(r, h)
-    wgt = (gather_nb(m, nb) / gather_nb(rho, nb)) * (1.0 + 0.2 * (Wk / W0) ** 4) * dWr
-    return (wgt.unsqueeze(-1) * dx).sum(1) * (-coef * h * h)
+    shift = None
+    if shift_coef > 0.0:
+        Wk = kernel.w(torch.sqrt(r2), h)
+        wgt = (m_j / rho_j) * (1.0 + 0.2 * (Wk / W0) ** 4) * dWr
+        shift = (wgt.unsqueeze(-1) * dx).sum(1) * (-shift_coef * h * h)
+    return val.sum(1), shift
 
 
 def wall_pairs(x, p, rho, v, rows, nb, mask, g, kernel: Kernel, h: float, domain: Domain):
@@ -122,6 +123,8 @@ def wall_pairs(x, p, rho, v, rows, nb, mask, g, kernel: Kernel, h: float, domain
 
 def embed(rows: torch.Tensor, vals: torch.Tensor, n: int) -> torch.Tensor:
     """Full-length array holding ``vals`` at ``rows`` and zeros elsewhere."""
+    if rows.numel() == n:  # rows = all particles, in order (nonzero of an all-true mask)
+        return vals
     out = torch.zeros((n,) + vals.shape[1:], dtype=vals.dtype, device=vals.device)
     return out.index_copy_(0, rows, vals)
 
@@ -137,7 +140,7 @@ class WeaklyCompressibleFluid:
         self.domain = domain
         self.B = params.c0**2 * params.rho0 / params.gamma
         self._fns = {"momentum": momentum_pairs, "continuity": continuity_pairs,
-                     "shifting": shifting_pairs, "wall": wall_pairs}
+                     "wall": wall_pairs}
         if compile:
             self._fns = {k: torch.compile(f, dynamic=True) for k, f in self._fns.items()}
 
@@ -210,29 +213,26 @@ class WeaklyCompressibleFluid:
                  "body": torch.where(fluid, body.expand_as(a), zero)}
         return dvdt, parts
 
-    def continuity(self, v: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+    def continuity(self, v: torch.Tensor, m: torch.Tensor, dx0: float = 0.0):
         """drho/dt (3.7) (+ density diffusion) on the pair geometry of the last
-        :meth:`momentum` call, with velocities ``v`` (walls: their prescribed velocity)."""
+        :meth:`momentum` call, with velocities ``v`` (walls: their prescribed velocity),
+        and the particle-shifting displacement when shifting is on (else None): it moves
+        particles down the gradient of the particle concentration, which keeps the
+        distribution isotropic where the flow stretches it; fluid only, at most 0.1 dx0."""
         dx, dWr, rho = self._geom
         prm = self.prm
-        dr = self._fns["continuity"](v, m, rho, self.rows_f, self.nb_f, dx, dWr, self.ff_mask,
-                                     prm.density_diffusion * self.h * prm.c0,
-                                     prm.rho0 / prm.c0**2,
-                                     self._g(v) if any(prm.gravity) else None, self.h)
-        return embed(self.rows_f, dr, rho.shape[0])
-
-    def shift(self, m: torch.Tensor, dx0: float) -> torch.Tensor:
-        """Particle shifting (delta+-SPH) on the cached pair geometry, fluid only, limited
-        to 0.1 dx0 per step. It moves particles down the gradient of the particle
-        concentration, which keeps the distribution isotropic where the flow stretches it."""
-        dx, dWr, rho = self._geom
-        W0 = float(self.kernel.w(torch.tensor(dx0, dtype=torch.float64), self.h))
-        dr = self._fns["shifting"](m, rho, self.nb_f, dx, dWr, self.kernel, self.h, W0,
-                                   self.prm.shifting)
-        norm = dr.norm(dim=-1, keepdim=True)
-        lim = 0.1 * dx0
-        dr = torch.where(norm > lim, dr * (lim / norm.clamp_min(1e-300)), dr)
-        return embed(self.rows_f, dr, rho.shape[0])
+        W0 = float(self.kernel.w(torch.tensor(dx0, dtype=torch.float64), self.h)) if dx0 > 0 else 1.0
+        dr, sh = self._fns["continuity"](v, m, rho, self.rows_f, self.nb_f, dx, dWr, self.ff_mask,
+                                         prm.density_diffusion * self.h * prm.c0,
+                                         prm.rho0 / prm.c0**2,
+                                         self._g(v) if any(prm.gravity) else None, self.h,
+                                         self.kernel, W0, prm.shifting if dx0 > 0 else 0.0)
+        n = rho.shape[0]
+        if sh is not None:
+            norm = sh.norm(dim=-1, keepdim=True)
+            lim = 0.1 * dx0
+            sh = embed(self.rows_f, torch.where(norm > lim, sh * (lim / norm.clamp_min(1e-300)), sh), n)
+        return embed(self.rows_f, dr, n), sh
 
     def _wall_extrapolation(self, state, p, v_eval, g):
         """Adami, Hu & Adams (2012): wall pressure from the fluid with the hydrostatic /

@@ -66,7 +66,7 @@ class Simulation:
         self.n_fluid = int(self.fluid_mask.sum())
         self._refresh_pairs(force=True)
         self.dvdt = fluid.momentum(state, state.v)
-        self.drhodt = fluid.continuity(state.v, state.m)
+        self.drhodt, _ = fluid.continuity(state.v, state.m)
         self.info = self._measure()
         self._check_finite(state.v)
         if dt_fixed is not None:
@@ -136,11 +136,12 @@ class Simulation:
         a = self.dvdt  # zero for walls: they keep their prescribed velocity
         v_half = s.v + 0.5 * dt * a  # 1a
         v_tilde = s.v + dt * a  # 1b, used by the viscous term at the end of the step
-        self.drhodt = self.fluid.continuity(v_half, s.m)  # at x_n, with u_{n+1/2}
+        self.drhodt, shift = self.fluid.continuity(  # at x_n, with u_{n+1/2}
+            v_half, s.m, self.dx if self.fluid.prm.shifting > 0 else 0.0)
         s.rho = s.rho + dt * self.drhodt
         step = dt * torch.where(fm, v_half, s.v)  # 1e
-        if self.fluid.prm.shifting > 0:
-            step = step + self.fluid.shift(s.m, self.dx)
+        if shift is not None:
+            step = step + shift
         s.x = self.domain.wrap(s.x + step)
         self._refresh_pairs()
         self.dvdt = self.fluid.momentum(s, v_tilde)  # 2
