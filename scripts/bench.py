@@ -60,6 +60,27 @@ def run_tg(nx, dtype, device, t_end, compile, overrides=()):
                 pss=sim.state.n * sim.step / wall, linf=linf, l1=l1)
 
 
+def run_conduction(nx, dtype, device, compile):
+    """1-D transient conduction (cases/conduction_1d): L2 error / (T_face - T0) vs erfc."""
+    from torchsph.scenes import conduction_1d_exact
+    from torchsph.state import Phase
+
+    _, cfg = load_case(CASE.parent / "conduction_1d", [f"scene.nx={nx}"])
+    t0 = time.perf_counter()
+    scene, sim = make_simulation(cfg, dtype=dtype, device=device, compile=compile)
+    setup = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    run_steps(sim, t_end=cfg["run"]["t_end_s"])
+    if device == "cuda":
+        torch.cuda.synchronize()
+    wall = time.perf_counter() - t1
+    s, i = sim.state, scene.info
+    m = s.phase == Phase.SOLID
+    Te = conduction_1d_exact(s.x[m, 0], sim.t, i["alpha"], i["T_face"], i["T0"])
+    err = float(torch.sqrt(((s.T[m] - Te) ** 2).mean()) / (i["T_face"] - i["T0"]))
+    return dict(nx=nx, N=s.n, steps=sim.step, wall=wall, setup=setup, pss=s.n * sim.step / wall, l2=err)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="nx = 50 rows only")
@@ -69,12 +90,27 @@ def main(argv=None):
     ap.add_argument("--dtype", choices=("float64", "float32"), nargs="*", default=["float64", "float32"])
     ap.add_argument("--device", nargs="*", default=None)
     ap.add_argument("--set", dest="overrides", action="append", default=[])
+    ap.add_argument("--conduction-only", action="store_true", help="only the conduction table")
     a = ap.parse_args(argv)
     nxs = a.nx or ([50] if a.quick else [50, 100, 200])
     devices = a.device or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
     compile = not a.no_compile
     print(f"# torchsph Taylor-Green benchmark: t_end = {a.t_end}, torch {torch.__version__}, "
           f"{torch.get_num_threads()} threads, compile = {compile}")
+    if not a.conduction_only:
+        taylor_green_table(a, nxs, devices, compile)
+    print("\n# 1-D transient conduction (cases/conduction_1d, 2-D prism), L2 error vs erfc at t = 0.3 s")
+    print("| device | dtype | nx | N | steps | loop wall s | setup s | particle-steps/s | L2 / dT |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for device in devices:
+        for dt in a.dtype:
+            for nx in ([50] if a.quick else [25, 50, 100, 200]):
+                r = run_conduction(nx, getattr(torch, dt), device, False)
+                print(f"| {device} | {dt} | {r['nx']} | {r['N']} | {r['steps']} | {r['wall']:.2f} | "
+                      f"{r['setup']:.2f} | {r['pss']:.3g} | {r['l2']:.5f} |", flush=True)
+
+
+def taylor_green_table(a, nxs, devices, compile):
     print("| device | dtype | nx | N | steps | loop wall s | setup s | particle-steps/s | linf | L1 |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for device in devices:

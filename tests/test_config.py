@@ -66,7 +66,8 @@ def test_at_least_ten_distinct_malformed_cases():
 def test_good_cases_load():
     for case in sorted(p for p in CASES.iterdir() if (p / "case.toml").exists()):
         path, cfg = load_case(case)
-        assert cfg["scene"]["type"] in {"taylor_green", "poiseuille", "hydrostatic_tank"}
+        assert cfg["scene"]["type"] in {"taylor_green", "poiseuille", "hydrostatic_tank", "conduction_1d",
+                                        "gaussian_bump"}
 
 
 def test_overrides_are_validated():
@@ -87,3 +88,35 @@ def test_cli_prints_one_line_and_exits_2(tmp_path):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in r.stderr
     assert lines[0].startswith("torchsph: error:") and "rho0_kg_m3 = -1.0" in lines[0]
+
+
+THERMAL_GOOD = (CASES / "conduction_1d" / "case.toml").read_text()
+BAD_THERMAL = {
+    "negative_conductivity": (with_edit(THERMAL_GOOD, "conductivity_W_mK = 42.0", "conductivity_W_mK = -42.0"),
+                              ["[thermal] conductivity_W_mK = -42.0", "> 0"]),
+    "latent_without_solidus": (with_edit(THERMAL_GOOD, "specific_heat_J_kgK = 450.0",
+                                         "specific_heat_J_kgK = 450.0\nlatent_heat_J_kg = 82000.0"),
+                               ["missing required key [thermal] solidus_K"]),
+    "liquidus_below_solidus": (with_edit(THERMAL_GOOD, "specific_heat_J_kgK = 450.0",
+                                         "specific_heat_J_kgK = 450.0\nlatent_heat_J_kg = 1.0\n"
+                                         "solidus_K = 1800.0\nliquidus_K = 1700.0"),
+                               ["[thermal] liquidus_K = 1700.0", "must be > solidus_K"]),
+    "missing_thermal": (THERMAL_GOOD.split("[thermal]")[0] + "[run]\nt_end_s = 0.1\n",
+                        ["missing section [thermal]"]),
+    "unknown_thermal_key": (with_edit(THERMAL_GOOD, "conductivity_W_mK = 42.0", "conductivity = 42.0"),
+                            ["unknown key [thermal] conductivity", "allowed"]),
+    "fluid_case_without_c0": (with_edit(GOOD, "c0_m_s = 10.0        # 10 U: Mach 0.1\n", ""),
+                              ["missing required key [fluid] c0_m_s"]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD_THERMAL))
+def test_malformed_thermal_case(name, tmp_path):
+    text, parts = BAD_THERMAL[name]
+    (tmp_path / "case.toml").write_text(text)
+    with pytest.raises(CaseError) as e:
+        load_case(tmp_path)
+    msg = str(e.value)
+    assert "\n" not in msg
+    for p in parts:
+        assert p in msg, msg

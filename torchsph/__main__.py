@@ -51,7 +51,8 @@ def main(argv=None) -> int:
         return 130
     print(f"torchsph: {s['steps']} steps to t = {s['t_final_s']:.6g} s, {s['n_particles']} particles, "
           f"{s['wall_s']:.2f} s wall, {s['particle_steps_per_s']:.3g} particle-steps/s, "
-          f"dt bound by {s['dt_binding_limit']}, Mach {s['mach_max']:.3f}; output in {out}")
+          f"dt bound by {s['dt_binding_limit']}"
+          + (f", Mach {s['mach_max']:.3f}" if s["mach_max"] is not None else "") + f"; output in {out}")
     return 0
 
 

@@ -113,8 +113,9 @@ def validate_section(name: str, raw: dict, schema: dict[str, Key], dim: int | No
 # --- the common sections ------------------------------------------------------
 FLUID = {
     "rho0_kg_m3": Key("float", gt=0, doc="reference density"),
-    "c0_m_s": Key("float", gt=0, doc="artificial speed of sound (Mach <= 0.1 of the flow)"),
-    "viscosity_Pa_s": Key("float", ge=0, doc="dynamic viscosity"),
+    "c0_m_s": Key("float", default=None, gt=0,
+                  doc="artificial speed of sound (Mach <= 0.1 of the flow); needed with fluid"),
+    "viscosity_Pa_s": Key("float", default=None, ge=0, doc="dynamic viscosity; needed with fluid"),
     "gravity_m_s2": Key("vec", default=None, doc="gravity vector"),
     "body_force_m_s2": Key("vec", default=None, doc="extra body acceleration, e.g. a channel drive"),
     "gamma": Key("float", default=7.0, gt=0, doc="Tait exponent"),
@@ -152,7 +153,15 @@ RUN = {
     "device": Key("str", default="cpu", choices=("cpu", "cuda"), doc="torch device"),
 }
 
-TOP = ("scene", "fluid", "numerics", "run")
+THERMAL = {
+    "conductivity_W_mK": Key("float", gt=0, doc="thermal conductivity"),
+    "specific_heat_J_kgK": Key("float", gt=0, doc="specific heat c_p"),
+    "latent_heat_J_kg": Key("float", default=0.0, ge=0, doc="latent heat of melting h_f"),
+    "solidus_K": Key("float", default=None, gt=0, doc="solidus T_S (with latent heat)"),
+    "liquidus_K": Key("float", default=None, gt=0, doc="liquidus T_L (with latent heat)"),
+}
+
+TOP = ("scene", "fluid", "thermal", "numerics", "run")
 
 
 def _set_dotted(raw: dict, dotted: str, value_text: str):
@@ -200,8 +209,8 @@ def validate(raw: dict) -> dict:
     unknown = sorted(set(raw) - set(TOP))
     if unknown:
         raise CaseError(f"unknown section [{unknown[0]}] (allowed: {', '.join(TOP)})")
-    for sec in TOP:
-        if sec not in raw and sec != "numerics":
+    for sec in ("scene", "fluid", "run"):
+        if sec not in raw:
             raise CaseError(f"missing section [{sec}]")
     scene_raw = raw["scene"]
     if not isinstance(scene_raw, dict):
@@ -221,6 +230,22 @@ def validate(raw: dict) -> dict:
            "fluid": validate_section("fluid", raw["fluid"], FLUID, dim),
            "numerics": validate_section("numerics", raw.get("numerics", {}), NUMERICS, dim),
            "run": validate_section("run", raw["run"], RUN, dim)}
+    if spec.has_fluid:
+        for key in ("c0_m_s", "viscosity_Pa_s"):
+            if cfg["fluid"][key] is None:
+                raise CaseError(f"missing required key [fluid] {key} ({FLUID[key].allowed()}; "
+                                f"{FLUID[key].doc}) for scene type {stype!r}")
+    if spec.needs_thermal and "thermal" not in raw:
+        raise CaseError(f"missing section [thermal] (scene type {stype!r} solves the energy equation)")
+    if "thermal" in raw:
+        th = cfg["thermal"] = validate_section("thermal", raw["thermal"], THERMAL, dim)
+        if th["latent_heat_J_kg"] > 0:
+            for key in ("solidus_K", "liquidus_K"):
+                if th[key] is None:
+                    raise CaseError(f"missing required key [thermal] {key} (latent_heat_J_kg > 0)")
+            if not th["liquidus_K"] > th["solidus_K"]:
+                raise CaseError(f"[thermal] liquidus_K = {th['liquidus_K']}: must be > solidus_K = "
+                                f"{th['solidus_K']}")
     run = cfg["run"]
     if (run["t_end_s"] is None) == (run["steps"] is None):
         raise CaseError("[run]: give exactly one of t_end_s or steps "

@@ -196,9 +196,9 @@ class VerletList:
     def needs_rebuild(self, x: torch.Tensor) -> bool:
         if self.x_ref is None or self.x_ref.shape != x.shape:
             return True
-        if self.skin <= 0:
-            return True
         d = self.domain.minimum_image(x - self.x_ref)
+        if self.skin <= 0:  # no skin: rebuild whenever anything moved
+            return bool((d != 0).any())
         return bool((d * d).sum(-1).max() > (0.5 * self.skin) ** 2)
 
     def update(self, x: torch.Tensor, force: bool = False) -> bool:

@@ -11,7 +11,8 @@ import torch
 from . import io as sio
 from .fluid import FluidParams, WeaklyCompressibleFluid
 from .kernels import make_kernel
-from .scenes import Scene, build_scene
+from .scenes import SCENES, Scene, build_scene
+from .thermal import Conduction, ThermalParams
 from .simulation import Simulation
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -26,16 +27,28 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None) -> tuple[S
     dim = cfg["scene"]["dim"]
     h = nm["h_over_dx"] * scene.dx
     kernel = make_kernel(nm["kernel"], dim)
-    prm = FluidParams(rho0=fl["rho0_kg_m3"], c0=fl["c0_m_s"], eta=fl["viscosity_Pa_s"],
-                      gravity=tuple(fl["gravity_m_s2"]), body_force=tuple(fl["body_force_m_s2"]),
-                      gamma=fl["gamma"], density_diffusion=nm["density_diffusion"],
-                      background_pressure=fl["background_pressure_Pa"], shifting=nm["shifting"])
     compile = nm["compile"] if compile is None else compile
-    fluid = WeaklyCompressibleFluid(prm, kernel, h, scene.domain, compile=compile)
-    sim = Simulation(scene.state, fluid, scene.domain, skin=nm["skin_over_dx"] * scene.dx,
+    fluid = thermal = None
+    if SCENES[cfg["scene"]["type"]].has_fluid:
+        prm = FluidParams(rho0=fl["rho0_kg_m3"], c0=fl["c0_m_s"], eta=fl["viscosity_Pa_s"],
+                          gravity=tuple(fl["gravity_m_s2"]), body_force=tuple(fl["body_force_m_s2"]),
+                          gamma=fl["gamma"], density_diffusion=nm["density_diffusion"],
+                          background_pressure=fl["background_pressure_Pa"], shifting=nm["shifting"])
+        fluid = WeaklyCompressibleFluid(prm, kernel, h, scene.domain, compile=compile)
+    if "thermal" in cfg:
+        th = cfg["thermal"]
+        tp = ThermalParams(conductivity=th["conductivity_W_mK"], specific_heat=th["specific_heat_J_kgK"],
+                           latent_heat=th["latent_heat_J_kg"], solidus=th["solidus_K"] or 0.0,
+                           liquidus=th["liquidus_K"] or 0.0)
+        k = torch.full((scene.state.n,), tp.conductivity, dtype=scene.state.dtype,
+                       device=scene.state.device)
+        thermal = Conduction(tp, kernel, h, scene.domain, k, compile=compile)
+    # nothing moves in a scene without fluid (rigid solids at rest): no Verlet skin needed
+    skin = nm["skin_over_dx"] * scene.dx if fluid is not None else 0.0
+    sim = Simulation(scene.state, fluid, scene.domain, skin=skin,
                      cfl=nm["cfl"], dt_fixed=nm["dt_s"], allow_unstable_dt=nm["allow_unstable_dt"],
                      max_compression=nm["max_compression"], dx=scene.dx,
-                     damping_time=nm["damping_time_s"])
+                     damping_time=nm["damping_time_s"], thermal=thermal)
     return scene, sim
 
 
@@ -154,8 +167,8 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         "dt_limit_counts": dict(stats.limits),
         "dt_min_s": stats.dt_min if stats.dt_min < math.inf else None,
         "dt_max_s": stats.dt_max,
-        "c0_m_s": sim.fluid.prm.c0,
-        "mach_max": stats.vmax / sim.fluid.prm.c0,
+        "c0_m_s": sim.fluid.prm.c0 if sim.fluid is not None else None,
+        "mach_max": stats.vmax / sim.fluid.prm.c0 if sim.fluid is not None else None,
         "neighbour_builds": sim.nl.n_builds,
         "snapshots": len(snaps),
         "torch": torch.__version__,

@@ -32,6 +32,8 @@ class SceneSpec:
     build: Callable
     check: Callable | None = None
     doc: str = ""
+    has_fluid: bool = True
+    needs_thermal: bool = False
 
 
 def lattice(counts, dx, origin=None, dtype=torch.float64, device="cpu"):
@@ -213,6 +215,86 @@ def check_hydrostatic_tank(cfg):
     _need_wall_layers(cfg)
 
 
+# --- thermal verification scenes --------------------------------------------------
+def _solid(x, fl, dx, d, T, dtype, device, id0=0, phase=Phase.SOLID):
+    rho0 = fl["rho0_kg_m3"]
+    return ParticleState.create(x, torch.zeros_like(x), rho0, rho0 * dx**d, phase, T=T,
+                                id=torch.arange(x.shape[0]) + id0, dtype=dtype, device=device)
+
+
+def _cross_section(cfg) -> int:
+    """Particles across a periodic cross-section: two search radii, rounded up."""
+    return math.ceil(2.0 * _support_cells(cfg)) + 1
+
+
+def conduction_1d_exact(x, t, alpha, T_face, T0):
+    """Semi-infinite solid, face x = 0 held at T_face from t = 0: T0 + dT erfc(x / 2 sqrt(a t))."""
+    if t <= 0:
+        return torch.where(x > 0, torch.full_like(x, T0), torch.full_like(x, T_face))
+    return T0 + (T_face - T0) * torch.special.erfc(x / (2.0 * math.sqrt(alpha * t)))
+
+
+def build_conduction_1d(cfg, dtype, device) -> Scene:
+    sc, fl = cfg["scene"], cfg["fluid"]
+    d, L, nx, layers = sc["dim"], sc["length_m"], sc["nx"], sc["wall_layers"]
+    dx = L / nx
+    nc = _cross_section(cfg)
+    xs = lattice([nx] + [nc] * (d - 1), dx, dtype=dtype, device=device)
+    xw = lattice([layers] + [nc] * (d - 1), dx, origin=[-layers * dx] + [0.0] * (d - 1),
+                 dtype=dtype, device=device)
+    solid = _solid(xs, fl, dx, d, sc["initial_temperature_K"], dtype, device)
+    wall = _solid(xw, fl, dx, d, sc["face_temperature_K"], dtype, device, id0=xs.shape[0],
+                  phase=Phase.WALL)
+    lo = [-layers * dx] + [0.0] * (d - 1)
+    hi = [L] + [nc * dx] * (d - 1)
+    th = cfg["thermal"]
+    alpha = th["conductivity_W_mK"] / (fl["rho0_kg_m3"] * th["specific_heat_J_kgK"])
+    return Scene(ParticleState.cat([solid, wall]), Domain(lo, hi, [False] + [True] * (d - 1)), dx,
+                 {"alpha": alpha, "T_face": sc["face_temperature_K"], "T0": sc["initial_temperature_K"],
+                  "L": L})
+
+
+def gaussian_bump_exact(x, t, alpha, center, sigma, A, Tb, domain):
+    """Diffusion of T = Tb + A exp(-r^2 / (2 sigma^2)) in a periodic box: the free-space
+    solution summed over the 3^d nearest periodic images of the bump."""
+    import itertools
+
+    d = x.shape[1]
+    s2 = sigma * sigma + 2.0 * alpha * t
+    c = torch.as_tensor(center, dtype=x.dtype, device=x.device)
+    r0 = domain.minimum_image(x - c)
+    L = torch.as_tensor(domain.length, dtype=x.dtype, device=x.device)
+    total = torch.zeros_like(x[:, 0])
+    for img in itertools.product((-1, 0, 1), repeat=d):
+        r = r0 + torch.as_tensor(img, dtype=x.dtype, device=x.device) * L
+        total = total + torch.exp(-(r * r).sum(-1) / (2.0 * s2))
+    return Tb + A * (sigma * sigma / s2) ** (d / 2) * total
+
+
+def build_gaussian_bump(cfg, dtype, device) -> Scene:
+    sc, fl = cfg["scene"], cfg["fluid"]
+    d, L, nx = sc["dim"], sc["length_m"], sc["nx"]
+    dx = L / nx
+    x = lattice([nx] * d, dx, dtype=dtype, device=device)
+    dom = Domain([0.0] * d, [L] * d, [True] * d)
+    th = cfg["thermal"]
+    alpha = th["conductivity_W_mK"] / (fl["rho0_kg_m3"] * th["specific_heat_J_kgK"])
+    center = [0.5 * L] * d
+    T = gaussian_bump_exact(x, 0.0, alpha, center, sc["sigma_m"], sc["amplitude_K"],
+                            sc["background_K"], dom)
+    return Scene(_solid(x, fl, dx, d, T, dtype, device), dom, dx,
+                 {"alpha": alpha, "center": center, "sigma": sc["sigma_m"], "A": sc["amplitude_K"],
+                  "Tb": sc["background_K"]})
+
+
+def check_gaussian_bump(cfg):
+    _need_periodic_span(cfg, cfg["scene"]["nx"], "nx")
+    sc = cfg["scene"]
+    if sc["sigma_m"] > sc["length_m"] / 8:
+        raise CaseError(f"[scene] sigma_m = {sc['sigma_m']}: must be <= length_m / 8 = "
+                        f"{sc['length_m'] / 8:g} so that periodic images stay negligible")
+
+
 SCENES: dict[str, SceneSpec] = {
     "taylor_green": SceneSpec(
         {"length_m": Key("float", default=1.0, gt=0, doc="side of the periodic box"),
@@ -232,6 +314,22 @@ SCENES: dict[str, SceneSpec] = {
          "n_depth": Key("int", ge=2, doc="particles across the depth"),
          "wall_layers": Key("int", default=3, ge=1, doc="layers of wall particles")},
         (3, 2), build_hydrostatic_tank, check_hydrostatic_tank, "fluid at rest in a walled box"),
+    "conduction_1d": SceneSpec(
+        {"length_m": Key("float", gt=0, doc="length of the bar along x"),
+         "nx": Key("int", ge=4, doc="particles along x"),
+         "face_temperature_K": Key("float", gt=0, doc="temperature held at x < 0"),
+         "initial_temperature_K": Key("float", gt=0, doc="initial temperature of the bar"),
+         "wall_layers": Key("int", default=3, ge=1, doc="layers of fixed-temperature particles")},
+        (2, 3), build_conduction_1d, _need_wall_layers, "semi-infinite transient conduction",
+        has_fluid=False, needs_thermal=True),
+    "gaussian_bump": SceneSpec(
+        {"length_m": Key("float", gt=0, doc="side of the periodic box"),
+         "nx": Key("int", gt=0, doc="particles per side"),
+         "sigma_m": Key("float", gt=0, doc="standard deviation of the bump"),
+         "amplitude_K": Key("float", doc="peak excess temperature"),
+         "background_K": Key("float", gt=0, doc="far-field temperature")},
+        (3, 2), build_gaussian_bump, check_gaussian_bump, "diffusion of a Gaussian temperature bump",
+        has_fluid=False, needs_thermal=True),
 }
 
 

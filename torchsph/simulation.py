@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from .fluid import WeaklyCompressibleFluid
+from .thermal import Conduction
 from .neighbors import Domain, VerletList
 from .state import ParticleState, Phase
 
@@ -31,6 +32,7 @@ LIMIT_FORMULAS = {
     "acoustic": "cfl h / (c0 + |u|max)",
     "viscous": "0.125 h^2 rho_min / eta",
     "force": "0.25 sqrt(h / |a|max)",
+    "thermal": "0.125 rho c_p h^2 / k",
 }
 
 
@@ -45,28 +47,38 @@ class StepInfo:
 class Simulation:
     """Single-process solver: owns the state, the neighbour list and the clock."""
 
-    def __init__(self, state: ParticleState, fluid: WeaklyCompressibleFluid, domain: Domain,
+    def __init__(self, state: ParticleState, fluid: WeaklyCompressibleFluid | None, domain: Domain,
                  skin: float, cfl: float = 0.25, dt_fixed: float | None = None,
                  allow_unstable_dt: bool = False, max_compression: float = 0.3, dx: float = 0.0,
-                 damping_time: float = 0.0):
+                 damping_time: float = 0.0, thermal: Conduction | None = None):
+        """``fluid`` and ``thermal`` are the physics a scene declares; either may be None
+        and then costs nothing (a conduction study has no momentum, a flow no energy)."""
         self.state = state
-        self.fluid = fluid
+        self.fluid_mask = state.phase == Phase.FLUID
+        self.n_fluid = int(self.fluid_mask.sum())
+        self.fluid = fluid if self.n_fluid > 0 else None
+        self.thermal = thermal
+        if self.fluid is None and thermal is None:
+            raise ValueError("Simulation: the scene declares no physics (no fluid, no thermal)")
         self.domain = domain
-        self.h = fluid.h
+        some = self.fluid if self.fluid is not None else thermal
+        self.h = some.h
         self.cfl = cfl
         self.dt_fixed = dt_fixed
         self.allow_unstable_dt = allow_unstable_dt
         self.max_compression = max_compression
         self.dx = dx  # initial particle spacing
         self.damping_time = damping_time  # settling: velocity damping for t < damping_time
-        self.nl = VerletList(fluid.kernel.radius(fluid.h), skin, domain)
+        self.nl = VerletList(some.kernel.radius(some.h), skin, domain)
         self.t = 0.0
         self.step = 0
-        self.fluid_mask = state.phase == Phase.FLUID
-        self.n_fluid = int(self.fluid_mask.sum())
         self._refresh_pairs(force=True)
-        self.dvdt = fluid.momentum(state, state.v)
-        self.drhodt, _ = fluid.continuity(state.v, state.m)
+        self.dvdt = torch.zeros_like(state.v)
+        self.drhodt = torch.zeros_like(state.rho)
+        if self.fluid is not None:
+            self.dvdt = self.fluid.momentum(state, state.v)
+            self.drhodt, _ = self.fluid.continuity(state.v, state.m)
+        self.dTdt = thermal.rate(state, state.T) if thermal is not None else None  # dh/dt
         self.info = self._measure()
         self._check_finite(state.v)
         if dt_fixed is not None:
@@ -75,7 +87,9 @@ class Simulation:
     # --- neighbours ---------------------------------------------------------
     def _refresh_pairs(self, force: bool = False):
         if self.nl.update(self.state.x, force=force):
-            self.fluid.select_pairs(self.state, self.nl.nb, self.nl.mask)
+            for phys in (self.fluid, self.thermal):
+                if phys is not None:
+                    phys.select_pairs(self.state, self.nl.nb, self.nl.mask)
 
     @property
     def n_pairs(self) -> int:
@@ -83,6 +97,8 @@ class Simulation:
 
     # --- time-step control --------------------------------------------------
     def _measure(self):
+        if self.fluid is None:
+            return {"vmax": 0.0, "amax": 0.0, "rho_min": float(self.state.rho.min()), "compression": 0.0}
         fm = self.fluid_mask.unsqueeze(-1)
         v = torch.where(fm, self.state.v, torch.zeros_like(self.state.v))
         a = torch.where(fm, self.dvdt, torch.zeros_like(self.dvdt))
@@ -96,12 +112,17 @@ class Simulation:
 
     def limits(self) -> dict[str, float]:
         """Every time-step limit of SPEC §4 that applies to this scene (seconds)."""
-        m, prm, h = self.info, self.fluid.prm, self.h
-        lim = {"acoustic": self.cfl * h / (prm.c0 + m["vmax"])}
-        if prm.eta > 0:
-            lim["viscous"] = 0.125 * h * h * m["rho_min"] / prm.eta
-        if m["amax"] > 0 and math.isfinite(m["amax"]):
-            lim["force"] = 0.25 * math.sqrt(h / m["amax"])
+        m, h = self.info, self.h
+        lim = {}
+        if self.fluid is not None:
+            prm = self.fluid.prm
+            lim["acoustic"] = self.cfl * h / (prm.c0 + m["vmax"])
+            if prm.eta > 0:
+                lim["viscous"] = 0.125 * h * h * m["rho_min"] / prm.eta
+            if m["amax"] > 0 and math.isfinite(m["amax"]):
+                lim["force"] = 0.25 * math.sqrt(h / m["amax"])
+        if self.thermal is not None:
+            lim["thermal"] = self.thermal.limit(self.state)
         return lim
 
     def choose_dt(self) -> tuple[float, str]:
@@ -136,19 +157,32 @@ class Simulation:
         a = self.dvdt  # zero for walls: they keep their prescribed velocity
         v_half = s.v + 0.5 * dt * a  # 1a
         v_tilde = s.v + dt * a  # 1b, used by the viscous term at the end of the step
-        self.drhodt, shift = self.fluid.continuity(  # at x_n, with u_{n+1/2}
-            v_half, s.m, self.dx if self.fluid.prm.shifting > 0 else 0.0)
-        s.rho = s.rho + dt * self.drhodt
-        step = dt * torch.where(fm, v_half, s.v)  # 1e
+        if self.thermal is not None:  # the energy equation in specific enthalpy h(T)
+            H = self.thermal.to_enthalpy(s.T)
+            H_half = H + 0.5 * dt * self.dTdt  # 1d
+            # extrapolated for the evaluation at the end of the step; walls keep theirs
+            s.T = torch.where(self.thermal.wall_mask, s.T,
+                              self.thermal.to_temperature(H + dt * self.dTdt, s.T))
+        shift = None
+        if self.fluid is not None:
+            self.drhodt, shift = self.fluid.continuity(  # at x_n, with u_{n+1/2}
+                v_half, s.m, self.dx if self.fluid.prm.shifting > 0 else 0.0)
+            s.rho = s.rho + dt * self.drhodt
+        step = dt * torch.where(fm, v_half, s.v)  # 1e (rigid bodies move with their velocity)
         if shift is not None:
             step = step + shift
         s.x = self.domain.wrap(s.x + step)
         self._refresh_pairs()
-        self.dvdt = self.fluid.momentum(s, v_tilde)  # 2
-        if self.t + dt < self.damping_time:
-            self.dvdt = self.dvdt - self._damping_rate(self.t + dt) * torch.where(
-                fm, v_tilde, torch.zeros_like(v_tilde))
+        if self.fluid is not None:
+            self.dvdt = self.fluid.momentum(s, v_tilde)  # 2
+            if self.t + dt < self.damping_time:
+                self.dvdt = self.dvdt - self._damping_rate(self.t + dt) * torch.where(
+                    fm, v_tilde, torch.zeros_like(v_tilde))
         s.v = v_half + 0.5 * dt * self.dvdt  # 3c
+        if self.thermal is not None:
+            self.dTdt = self.thermal.rate(s, s.T)  # 2 (dh/dt, W/kg; 0 on walls)
+            s.T = torch.where(self.thermal.wall_mask, s.T,
+                              self.thermal.to_temperature(H_half + 0.5 * dt * self.dTdt, s.T))  # 3b
         self.t += dt
         self.step += 1
         self.info = self._measure()
@@ -164,6 +198,16 @@ class Simulation:
 
     def _check_finite(self, v_eval, dt: float = 0.0, limit: str = "-"):
         m = self.info
+        if self.fluid is None:
+            if not bool(torch.isfinite(self.state.T).all()):
+                k = int(torch.nonzero(~torch.isfinite(self.state.T))[0])
+                lim = getattr(self, "_pre_limits", None) or self.limits()
+                raise SimulationError(
+                    f"blow-up at step {self.step}, t = {self.t:.6g} s: non-finite temperature at "
+                    f"particle id {int(self.state.id[k])}; largest term there: conduction; dt used "
+                    f"{dt:.3g} s ({limit}), binding dt limit before the step: thermal = "
+                    f"{lim.get('thermal', math.inf):.3g} s")
+            return
         bad_nan = not (math.isfinite(m["vmax"]) and math.isfinite(m["amax"]))
         bad_comp = m["compression"] > self.max_compression
         if not (bad_nan or bad_comp):

@@ -11,7 +11,8 @@ class Phase(enum.IntEnum):
     """Material tag of a particle."""
 
     FLUID = 0  # moves by the momentum equation
-    WALL = 1  # rigid boundary particle (Adami 2012 generalised wall condition)
+    WALL = 1  # rigid boundary particle (Adami 2012 wall condition; fixed temperature)
+    SOLID = 2  # rigid body that conducts heat (moves kinematically; energy equation only)
 
 
 FLOAT_FIELDS = ("x", "v", "rho", "m", "p", "T")

@@ -1,0 +1,134 @@
+"""Heat conduction (Cleary-Monaghan, 3.13) and the effective heat capacity (2.11)."""
+import math
+
+import pytest
+import torch
+
+from conftest import CASES
+from torchsph.config import load_case
+from torchsph.kernels import WendlandC2
+from torchsph.neighbors import Domain, build_table
+from torchsph.runner import make_simulation, run_steps
+from torchsph.scenes import conduction_1d_exact, gaussian_bump_exact
+from torchsph.state import ParticleState, Phase
+from torchsph.thermal import Conduction, ThermalParams, effective_heat_capacity, enthalpy
+
+
+def cloud_conduction(n=300, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, 3, generator=g, dtype=torch.float64) * 1e-3
+    T = 300 + 1500 * torch.rand(n, generator=g, dtype=torch.float64)
+    st = ParticleState.create(x, torch.zeros_like(x), 7890.0, 7890.0 * (1e-3) ** 3 / n, Phase.SOLID, T=T)
+    k = 20 + 40 * torch.rand(n, generator=g, dtype=torch.float64)  # per-particle conductivity
+    dom = Domain([0.0] * 3, [1e-3] * 3, [False] * 3)
+    h = 1.5 * 1e-3 / n ** (1 / 3)
+    c = Conduction(ThermalParams(42.0, 450.0), WendlandC2(3), h, dom, k)
+    nb, mask = build_table(x, 2 * h, dom)
+    c.select_pairs(st, nb, mask)
+    return st, c
+
+
+def test_heat_flows_from_hot_to_cold_and_energy_is_conserved():
+    st, c = cloud_conduction()
+    q = c.heat_rate(st, st.T)  # W/m^3
+    V = st.m / st.rho
+    # pairwise antisymmetric exchange: total power is zero to round-off
+    total = float((q * V).sum())
+    scale = float((q * V).abs().sum())
+    assert abs(total) < 1e-12 * scale
+    # the hottest particle cools, the coldest warms
+    assert q[st.T.argmax()] < 0 and q[st.T.argmin()] > 0
+    # two particles only: heat goes from hot to cold at equal and opposite power
+    x = torch.tensor([[0.0, 0.0, 0.0], [1e-4, 0.0, 0.0]], dtype=torch.float64)
+    st2 = ParticleState.create(x, torch.zeros_like(x), 7890.0, 1e-6, Phase.SOLID,
+                               T=torch.tensor([1000.0, 400.0], dtype=torch.float64))
+    c2 = Conduction(ThermalParams(42.0, 450.0), WendlandC2(3), 1e-4, Domain([0.0] * 3, [1.0] * 3),
+                    torch.tensor([42.0, 21.0], dtype=torch.float64))
+    nb, mask = build_table(x, 2e-4, c2.domain)
+    c2.select_pairs(st2, nb, mask)
+    q2 = c2.heat_rate(st2, st2.T)
+    assert q2[0] < 0 < q2[1]
+    assert float(q2[0] + q2[1]) == pytest.approx(0.0, abs=1e-9 * float(q2[1]))
+
+
+def test_effective_heat_capacity_adds_latent_heat_exactly():
+    prm = ThermalParams(42.0, 450.0, latent_heat=82_000.0, solidus=1723.15, liquidus=1753.15)
+    T = torch.linspace(300.0, 3000.0, 400_001, dtype=torch.float64)
+    integral = float(torch.trapezoid(effective_heat_capacity(T, prm), T))
+    assert integral == pytest.approx(450.0 * 2700.0 + 82_000.0, rel=1e-9)
+    h = enthalpy(torch.tensor([3000.0], dtype=torch.float64), prm, 300.0)
+    assert float(h) == pytest.approx(integral, rel=1e-9)
+
+
+def conduction_error(nx):
+    _, cfg = load_case(CASES / "conduction_1d", [f"scene.nx={nx}"])
+    scene, sim = make_simulation(cfg)
+    run_steps(sim, t_end=cfg["run"]["t_end_s"])
+    s, i = sim.state, scene.info
+    m = s.phase == Phase.SOLID
+    Te = conduction_1d_exact(s.x[m, 0], sim.t, i["alpha"], i["T_face"], i["T0"])
+    return float(torch.sqrt(((s.T[m] - Te) ** 2).mean()) / (i["T_face"] - i["T0"]))
+
+
+def test_transient_conduction_erfc_and_convergence():
+    """Semi-infinite bar, fixed face temperature: L2 error / (T_face - T0) < 0.5 % at the
+    finest resolution and a measured convergence order >= 1.5."""
+    nxs = [25, 50, 100]
+    errs = [conduction_error(nx) for nx in nxs]
+    orders = [math.log(errs[k] / errs[k + 1]) / math.log(nxs[k + 1] / nxs[k]) for k in range(len(nxs) - 1)]
+    print(f"conduction_1d L2 errors {errs}, orders {orders}")
+    assert errs[-1] < 0.005
+    assert orders[-1] >= 1.5
+
+
+def test_gaussian_bump_3d():
+    """3-D diffusion of a Gaussian bump: max error < 1 % of the initial amplitude."""
+    _, cfg = load_case(CASES / "gaussian_bump_3d")
+    scene, sim = make_simulation(cfg)
+    run_steps(sim, t_end=cfg["run"]["t_end_s"])
+    i = scene.info
+    Te = gaussian_bump_exact(sim.state.x, sim.t, i["alpha"], i["center"], i["sigma"], i["A"], i["Tb"],
+                             scene.domain)
+    err = float((sim.state.T - Te).abs().max()) / i["A"]
+    peak_ratio = float(sim.state.T.max() - i["Tb"]) / float(Te.max() - i["Tb"])
+    print(f"gaussian bump: max error {err:.4f} of A, peak ratio {peak_ratio:.4f}")
+    assert err < 0.01
+
+
+def test_thermal_limit_binds_without_fluid():
+    _, cfg = load_case(CASES / "conduction_1d", ["scene.nx=20"])
+    _, sim = make_simulation(cfg)
+    dt, name = sim.choose_dt()
+    h = 1.5 * 0.01 / 20
+    assert name == "thermal" and dt == pytest.approx(0.125 * 7890 * 450 * h * h / 42.0)
+
+
+def test_one_phase_stefan_front_vs_neumann():
+    """Melt front s(t) = 2 lambda sqrt(alpha t) within 3 % (apparent heat capacity, 2.11)."""
+    from torchsph.thermal import melt_front, neumann_lambda
+
+    _, cfg = load_case(CASES / "stefan_1d")
+    scene, sim = make_simulation(cfg)
+    th, i = cfg["thermal"], scene.info
+    T_m = 0.5 * (th["solidus_K"] + th["liquidus_K"])
+    St = th["specific_heat_J_kgK"] * (i["T_face"] - T_m) / th["latent_heat_J_kg"]
+    lam = neumann_lambda(St)
+    s = sim.state
+    m = s.phase == Phase.SOLID
+    errs = []
+    for t in (0.25, 0.5):
+        run_steps(sim, t_end=t)
+        front = melt_front(s.x[m, 0], s.T[m], T_m)
+        exact = 2 * lam * math.sqrt(i["alpha"] * t)
+        errs.append(front / exact - 1)
+    print(f"Stefan St = {St:.3f}, lambda = {lam:.4f}, front errors {errs}")
+    assert max(abs(e) for e in errs) < 0.03
+
+
+def test_enthalpy_inversion():
+    from torchsph.thermal import temperature_from_enthalpy
+
+    prm = ThermalParams(42.0, 450.0, latent_heat=2.7e5, solidus=1723.0, liquidus=1727.0)
+    T = torch.linspace(300.0, 3500.0, 10001, dtype=torch.float64)
+    back = temperature_from_enthalpy(enthalpy(T, prm, 0.0), prm, 0.0)
+    assert float((back - T).abs().max()) < 1e-6
