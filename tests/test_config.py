@@ -67,7 +67,7 @@ def test_good_cases_load():
     for case in sorted(p for p in CASES.iterdir() if (p / "case.toml").exists()):
         path, cfg = load_case(case)
         assert cfg["scene"]["type"] in {"taylor_green", "poiseuille", "hydrostatic_tank", "conduction_1d",
-                                        "gaussian_bump"}
+                                        "gaussian_bump", "block"}
 
 
 def test_overrides_are_validated():
@@ -113,6 +113,31 @@ BAD_THERMAL = {
 @pytest.mark.parametrize("name", sorted(BAD_THERMAL))
 def test_malformed_thermal_case(name, tmp_path):
     text, parts = BAD_THERMAL[name]
+    (tmp_path / "case.toml").write_text(text)
+    with pytest.raises(CaseError) as e:
+        load_case(tmp_path)
+    msg = str(e.value)
+    assert "\n" not in msg
+    for p in parts:
+        assert p in msg, msg
+
+
+BEAM_GOOD = (CASES / "beam_plate" / "case.toml").read_text()
+BAD_BEAM = {
+    "negative_power": (with_edit(BEAM_GOOD, "power_W = 300.0", "power_W = -300.0"), ["[beam 0] power_W = -300.0", "> 0"]),
+    "efficiency_above_one": (with_edit(BEAM_GOOD, "efficiency = 0.85", "efficiency = 1.2"),
+                             ["[beam 0] efficiency = 1.2", "<= 1"]),
+    "zero_direction": (with_edit(BEAM_GOOD, "direction = [0.7071067811865476, 0.0, -0.7071067811865476]",
+                                 "direction = [0.0, 0.0, 0.0]"), ["[beam 0] direction", "non-zero"]),
+    "aim_wrong_length": (with_edit(BEAM_GOOD, "aim_m = [0.0, 0.0, 0.0]", "aim_m = [0.0, 0.0]"),
+                         ["[beam 0] aim_m = [0.0, 0.0]", "list of 3 numbers"]),
+    "unknown_beam_key": (with_edit(BEAM_GOOD, "radius_m = 0.75e-3", "radius = 0.75e-3"), ["unknown key [beam 0] radius"]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD_BEAM))
+def test_malformed_beam_case(name, tmp_path):
+    text, parts = BAD_BEAM[name]
     (tmp_path / "case.toml").write_text(text)
     with pytest.raises(CaseError) as e:
         load_case(tmp_path)

@@ -161,7 +161,16 @@ THERMAL = {
     "liquidus_K": Key("float", default=None, gt=0, doc="liquidus T_L (with latent heat)"),
 }
 
-TOP = ("scene", "fluid", "thermal", "numerics", "run")
+BEAM = {
+    "power_W": Key("float", gt=0, doc="beam power Q0 (per beam)"),
+    "efficiency": Key("float", default=0.85, gt=0, le=1, doc="absorbed fraction eta0"),
+    "radius_m": Key("float", gt=0, doc="1/e^2 radius of the Gaussian spot"),
+    "direction": Key("vec", doc="propagation direction e_src (normalised)"),
+    "aim_m": Key("vec", doc="a point on the beam axis at t = 0"),
+    "velocity_m_s": Key("vec", default=None, doc="velocity of the aim point"),
+}
+
+TOP = ("scene", "fluid", "thermal", "beam", "numerics", "run")
 
 
 def _set_dotted(raw: dict, dotted: str, value_text: str):
@@ -237,6 +246,20 @@ def validate(raw: dict) -> dict:
                                 f"{FLUID[key].doc}) for scene type {stype!r}")
     if spec.needs_thermal and "thermal" not in raw:
         raise CaseError(f"missing section [thermal] (scene type {stype!r} solves the energy equation)")
+    if "beam" in raw:
+        beams = raw["beam"]
+        if not isinstance(beams, list) or not all(isinstance(b, dict) for b in beams):
+            raise CaseError("beam must be an array of tables ([[beam]] ... )")
+        if "thermal" not in raw:
+            raise CaseError("[[beam]] needs a [thermal] section (beams heat through the energy equation)")
+        if dim != 3:
+            raise CaseError(f"[[beam]] needs a 3-D scene (scene.dim = {dim})")
+        cfg["beam"] = []
+        for k, b in enumerate(beams):
+            bb = validate_section(f"beam {k}", b, BEAM, dim)
+            if not any(bb["direction"]):
+                raise CaseError(f"[beam {k}] direction = {bb['direction']}: must be a non-zero vector")
+            cfg["beam"].append(bb)
     if "thermal" in raw:
         th = cfg["thermal"] = validate_section("thermal", raw["thermal"], THERMAL, dim)
         if th["latent_heat_J_kg"] > 0:

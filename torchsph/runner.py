@@ -12,6 +12,7 @@ from . import io as sio
 from .fluid import FluidParams, WeaklyCompressibleFluid
 from .kernels import make_kernel
 from .scenes import SCENES, Scene, build_scene
+from .beam import Beam
 from .thermal import Conduction, ThermalParams
 from .simulation import Simulation
 
@@ -42,7 +43,9 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None) -> tuple[S
                            liquidus=th["liquidus_K"] or 0.0)
         k = torch.full((scene.state.n,), tp.conductivity, dtype=scene.state.dtype,
                        device=scene.state.device)
-        thermal = Conduction(tp, kernel, h, scene.domain, k, compile=compile)
+        beams = [Beam(b["power_W"], b["efficiency"], b["radius_m"], tuple(b["direction"]),
+                      tuple(b["aim_m"]), tuple(b["velocity_m_s"])) for b in cfg.get("beam", [])]
+        thermal = Conduction(tp, kernel, h, scene.domain, k, compile=compile, beams=beams, dx=scene.dx)
     # nothing moves in a scene without fluid (rigid solids at rest): no Verlet skin needed
     skin = nm["skin_over_dx"] * scene.dx if fluid is not None else 0.0
     sim = Simulation(scene.state, fluid, scene.domain, skin=skin,
@@ -170,6 +173,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         "c0_m_s": sim.fluid.prm.c0 if sim.fluid is not None else None,
         "mach_max": stats.vmax / sim.fluid.prm.c0 if sim.fluid is not None else None,
         "neighbour_builds": sim.nl.n_builds,
+        "energy": sim.energy_balance(),
         "snapshots": len(snaps),
         "torch": torch.__version__,
     }

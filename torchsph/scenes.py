@@ -295,6 +295,21 @@ def check_gaussian_bump(cfg):
                         f"{sc['length_m'] / 8:g} so that periodic images stay negligible")
 
 
+def build_block(cfg, dtype, device) -> Scene:
+    """A rigid, heat-conducting block of lattice particles, its top face at z = 0 and
+    centred on the origin in x and y."""
+    sc, fl = cfg["scene"], cfg["fluid"]
+    dx = sc["dx_m"]
+    size = sc["size_m"]
+    counts = [max(round(s / dx), 1) for s in size]
+    origin = [-counts[0] * dx / 2, -counts[1] * dx / 2, -counts[2] * dx]
+    x = lattice(counts, dx, origin=origin, dtype=dtype, device=device)
+    st = _solid(x, fl, dx, 3, sc["temperature_K"], dtype, device)
+    lo = origin
+    hi = [o + c * dx for o, c in zip(origin, counts)]
+    return Scene(st, Domain(lo, hi, [False] * 3), dx, {"counts": counts})
+
+
 SCENES: dict[str, SceneSpec] = {
     "taylor_green": SceneSpec(
         {"length_m": Key("float", default=1.0, gt=0, doc="side of the periodic box"),
@@ -329,6 +344,12 @@ SCENES: dict[str, SceneSpec] = {
          "amplitude_K": Key("float", doc="peak excess temperature"),
          "background_K": Key("float", gt=0, doc="far-field temperature")},
         (3, 2), build_gaussian_bump, check_gaussian_bump, "diffusion of a Gaussian temperature bump",
+        has_fluid=False, needs_thermal=True),
+    "block": SceneSpec(
+        {"size_m": Key("vec", doc="block size (x, y, z)"),
+         "dx_m": Key("float", gt=0, doc="particle spacing"),
+         "temperature_K": Key("float", gt=0, doc="initial temperature")},
+        (3,), build_block, None, "rigid heat-conducting block, top face at z = 0",
         has_fluid=False, needs_thermal=True),
 }
 

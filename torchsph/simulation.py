@@ -78,7 +78,12 @@ class Simulation:
         if self.fluid is not None:
             self.dvdt = self.fluid.momentum(state, state.v)
             self.drhodt, _ = self.fluid.continuity(state.v, state.m)
-        self.dTdt = thermal.rate(state, state.T) if thermal is not None else None  # dh/dt
+        self.dTdt = None  # specific enthalpy rate dh/dt (W/kg) when the scene has heat
+        self.energy = {"beam_J": 0.0, "walls_J": 0.0}  # integrated exactly as the step does
+        if thermal is not None:
+            P, self._heat = thermal.power(state, state.T, 0.0)
+            self.dTdt = P / state.m
+            self._E0 = thermal.energy(state, thermal.prm, 0.0)
         self.info = self._measure()
         self._check_finite(state.v)
         if dt_fixed is not None:
@@ -180,7 +185,13 @@ class Simulation:
                     fm, v_tilde, torch.zeros_like(v_tilde))
         s.v = v_half + 0.5 * dt * self.dvdt  # 3c
         if self.thermal is not None:
-            self.dTdt = self.thermal.rate(s, s.T)  # 2 (dh/dt, W/kg; 0 on walls)
+            P, heat = self.thermal.power(s, s.T, self.t + dt)  # 2 (W per particle; 0 on walls)
+            self.dTdt = P / s.m
+            both = torch.stack([self._heat["beam"] + heat["beam"],
+                                self._heat["conduction"] + heat["conduction"]]).tolist()
+            self.energy["beam_J"] += 0.5 * dt * both[0]
+            self.energy["walls_J"] += 0.5 * dt * both[1]
+            self._heat = heat
             s.T = torch.where(self.thermal.wall_mask, s.T,
                               self.thermal.to_temperature(H_half + 0.5 * dt * self.dTdt, s.T))  # 3b
         self.t += dt
@@ -188,6 +199,19 @@ class Simulation:
         self.info = self._measure()
         self._check_finite(v_tilde, dt, limit)
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])
+
+    def energy_balance(self) -> dict:
+        """Energy bookkeeping (J) since the start: absorbed beam energy, heat from the walls,
+        the change of stored energy sum m h(T), and the residual stored - (beam + walls)."""
+        if self.thermal is None:
+            return {}
+        stored = self.thermal.energy(self.state, self.thermal.prm, 0.0) - self._E0
+        out = dict(self.energy)
+        out["stored_J"] = stored
+        out["residual_J"] = stored - out["beam_J"] - out["walls_J"]
+        ref = max(abs(out["beam_J"]) + abs(out["walls_J"]), 1e-300)
+        out["residual_rel"] = abs(out["residual_J"]) / ref
+        return out
 
     def _damping_rate(self, t: float) -> float:
         """Settling drag -zeta(t) u: zeta = (10 / T) (1 + cos(pi t / T)) / 2, ramped to zero

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from .fluid import dot, embed, gather_nb, pair_geometry
+from .beam import beam_power
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import ParticleState, Phase
@@ -120,12 +121,14 @@ class Conduction:
     between the last solid and the first wall layer rather than at the wall particles."""
 
     def __init__(self, params: ThermalParams, kernel: Kernel, h: float, domain: Domain,
-                 conductivity: torch.Tensor, compile: bool = False):
+                 conductivity: torch.Tensor, compile: bool = False, beams=(), dx: float = 0.0):
         self.prm = params
         self.kernel = kernel
         self.h = h
         self.domain = domain
         self.k = conductivity  # (N,) W/(m K), per particle
+        self.beams = list(beams)  # surface heat sources (2.7)
+        self.dx = dx
         self._fn = torch.compile(conduction_pairs, dynamic=True) if compile else conduction_pairs
         self._zeta_fn = torch.compile(laplacian_norm, dynamic=True) if compile else laplacian_norm
 
@@ -171,6 +174,20 @@ class Conduction:
                           self.domain)
         z = torch.where((z > 0.95) & (z < 1.05), z, torch.ones_like(z))
         return embed(self.rows, z, state.n) + self.wall_mask.to(z.dtype)
+
+    def power(self, state: ParticleState, T: torch.Tensor, t: float) -> tuple[torch.Tensor, dict]:
+        """Heat per particle (W): conduction V_i div(k grad T) plus beam power; and the
+        totals {"conduction": net heat from walls, "beam": absorbed} (W)."""
+        P_cond = self.heat_rate(state, T) * (state.m / state.rho)
+        P = P_cond
+        totals = {"conduction": P_cond.sum(), "beam": torch.zeros((), dtype=T.dtype, device=T.device)}
+        if self.beams:
+            inside = ~self.wall_mask
+            P_beam = sum(beam_power(state.x, torch.ones_like(inside), b, t, self.dx) for b in self.beams)
+            P_beam = torch.where(inside, P_beam, torch.zeros_like(P_beam))
+            totals["beam"] = P_beam.sum()
+            P = P + P_beam
+        return P, totals
 
     def rate(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
         """Specific enthalpy rate dh/dt = div(k grad T) / rho (W/kg). The energy equation is

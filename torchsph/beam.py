@@ -1,0 +1,102 @@
+"""Directional Gaussian surface heat sources (2.7), with shadowing, in 3-D.
+
+A beam of power Q0, efficiency eta0 and 1/e^2 radius r travels along the unit vector
+e_src through an aim point (which may move). Its intensity per unit area normal to the
+beam is q(a, b) = eta0 2 Q0 / (pi r^2) exp(-2 (a^2 + b^2) / r^2), with (a, b) the
+coordinates in the plane normal to e_src. On a surface with normal n the flux per unit
+surface area is q <-n . e_src>, so a surface patch absorbs q times its area projected
+onto the beam plane; the <-n . e_src> factor of (2.7) is that projection.
+
+Discretely the beam plane is cut into square bins of the particle spacing; in each bin
+the first material particle the beam meets (smallest depth along e_src; ties broken by
+index) absorbs q times the bin area, and every particle behind it is in its shadow (the
+intensity is taken at the bin centre). The absorbed power is
+then the midpoint quadrature of the Gaussian
+over the part of the beam that hits material: eta0 Q0 on a plate that covers the spot,
+at any tilt. No surface normal is needed, and no loop runs over particles or bins.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+
+@dataclass
+class Beam:
+    power: float  # W
+    efficiency: float  # absorbed fraction eta0
+    radius: float  # 1/e^2 radius, m
+    direction: tuple  # propagation direction e_src (normalised here)
+    aim: tuple  # a point on the beam axis at t = 0, m
+    velocity: tuple = field(default_factory=lambda: (0.0, 0.0, 0.0))  # motion of the aim point
+
+    def __post_init__(self):
+        e = [float(c) for c in self.direction]
+        n = math.sqrt(sum(c * c for c in e))
+        if len(e) != 3 or n == 0:
+            raise ValueError("Beam.direction must be a non-zero 3-vector")
+        self.direction = tuple(c / n for c in e)
+
+    def basis(self):
+        """Two unit vectors spanning the plane normal to the beam."""
+        e = self.direction
+        ref = (1.0, 0.0, 0.0) if abs(e[0]) < 0.9 else (0.0, 1.0, 0.0)
+        u = (e[1] * ref[2] - e[2] * ref[1], e[2] * ref[0] - e[0] * ref[2], e[0] * ref[1] - e[1] * ref[0])
+        nu = math.sqrt(sum(c * c for c in u))
+        u = tuple(c / nu for c in u)
+        w = (e[1] * u[2] - e[2] * u[1], e[2] * u[0] - e[0] * u[2], e[0] * u[1] - e[1] * u[0])
+        return u, w
+
+
+def beam_power(x: torch.Tensor, material: torch.Tensor, beam: Beam, t: float, dx: float,
+               cutoff: float = 3.0) -> torch.Tensor:
+    """Power (W) each particle absorbs from ``beam`` at time t; ``material`` marks the
+    particles that can absorb or shadow (all but, e.g., vapour or ghost particles).
+    Only the disc of radius ``cutoff`` r around the axis is traced (the Gaussian carries
+    1 - exp(-2 cutoff^2) of the power inside it: 1.5e-8 for 3)."""
+    if x.shape[1] != 3:
+        raise ValueError("beams need a 3-D scene")
+    dev, dt = x.device, x.dtype
+    e = torch.tensor(beam.direction, dtype=dt, device=dev)
+    u, w = (torch.tensor(v, dtype=dt, device=dev) for v in beam.basis())
+    aim = torch.tensor(beam.aim, dtype=dt, device=dev) + t * torch.tensor(beam.velocity, dtype=dt, device=dev)
+    rel = x - aim
+    depth = rel @ e
+    a = rel @ u
+    b = rel @ w
+    rho2 = a * a + b * b
+    cand = material & (rho2 < (cutoff * beam.radius) ** 2)
+    idx = torch.nonzero(cand).squeeze(1)
+    out = torch.zeros(x.shape[0], dtype=dt, device=dev)
+    if idx.numel() == 0:
+        return out
+    ia = torch.floor(a[idx] / dx).long()
+    ib = torch.floor(b[idx] / dx).long()
+    ia = ia - ia.min()
+    ib = ib - ib.min()
+    key = ia * (int(ib.max()) + 1) + ib
+    _, bin_of = torch.unique(key, return_inverse=True)
+    nb = int(bin_of.max()) + 1
+    d = depth[idx]
+    dmin = torch.full((nb,), math.inf, dtype=dt, device=dev).scatter_reduce(0, bin_of, d, "amin")
+    front = d == dmin[bin_of]
+    big = torch.iinfo(torch.long).max
+    first = torch.full((nb,), big, dtype=torch.long, device=dev).scatter_reduce(
+        0, bin_of, torch.where(front, idx, torch.full_like(idx, big)), "amin")
+    lit = idx == first[bin_of]
+    # midpoint rule: the intensity at the bin centre times the bin area (sampling at the
+    # hit particle instead is biased where the lattice aliases with the bins: +3.4 % seen)
+    ac = (torch.floor(a[idx] / dx) + 0.5) * dx
+    bc = (torch.floor(b[idx] / dx) + 0.5) * dx
+    q = beam.efficiency * 2.0 * beam.power / (math.pi * beam.radius**2) * torch.exp(
+        -2.0 * (ac * ac + bc * bc) / beam.radius**2)
+    out[idx] = torch.where(lit, q * dx * dx, torch.zeros_like(q))
+    return out
+
+
+def gaussian_fraction_in_strip(width: float, radius: float) -> float:
+    """Fraction of a Gaussian beam (1/e^2 radius r) inside a strip |a| < width/2: the
+    projection of a long cylinder of diameter ``width`` seen side-on."""
+    return math.erf(width / (math.sqrt(2.0) * radius))
