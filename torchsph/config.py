@@ -159,6 +159,14 @@ THERMAL = {
     "latent_heat_J_kg": Key("float", default=0.0, ge=0, doc="latent heat of melting h_f"),
     "solidus_K": Key("float", default=None, gt=0, doc="solidus T_S (with latent heat)"),
     "liquidus_K": Key("float", default=None, gt=0, doc="liquidus T_L (with latent heat)"),
+    "ambient_K": Key("float", default=300.0, gt=0, doc="ambient temperature T0 of the surface losses"),
+    "emissivity": Key("float", default=0.0, ge=0, le=1, doc="radiation sigma eps (T^4 - T0^4); 0 = off"),
+    "convection_W_m2K": Key("float", default=0.0, ge=0, doc="convection q_h (T - T0); 0 = off (vacuum)"),
+    "evaporation": Key("bool", default=False, doc="evaporation loss m_v [h_v + h(T)] (2.10)"),
+    "boiling_point_K": Key("float", default=3090.0, gt=0, doc="T_v of the vapour pressure (2.6)"),
+    "evaporation_heat_J_kg": Key("float", default=6.1e6, gt=0, doc="latent heat of evaporation h_v"),
+    "molar_mass_kg_mol": Key("float", default=0.0558, gt=0, doc="molar mass M"),
+    "ambient_pressure_Pa": Key("float", default=101325.0, gt=0, doc="p_a in C_p = 0.54 p_a"),
 }
 
 BEAM = {

@@ -13,7 +13,7 @@ from .fluid import FluidParams, WeaklyCompressibleFluid
 from .kernels import make_kernel
 from .scenes import SCENES, Scene, build_scene
 from .beam import Beam
-from .thermal import Conduction, ThermalParams
+from .thermal import Conduction, SurfaceLosses, ThermalParams
 from .simulation import Simulation
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -45,7 +45,13 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None) -> tuple[S
                        device=scene.state.device)
         beams = [Beam(b["power_W"], b["efficiency"], b["radius_m"], tuple(b["direction"]),
                       tuple(b["aim_m"]), tuple(b["velocity_m_s"])) for b in cfg.get("beam", [])]
-        thermal = Conduction(tp, kernel, h, scene.domain, k, compile=compile, beams=beams, dx=scene.dx)
+        losses = SurfaceLosses(ambient=th["ambient_K"], emissivity=th["emissivity"],
+                               convection=th["convection_W_m2K"], evaporation=th["evaporation"],
+                               boiling_point=th["boiling_point_K"],
+                               evaporation_heat=th["evaporation_heat_J_kg"],
+                               molar_mass=th["molar_mass_kg_mol"], ambient_pressure=th["ambient_pressure_Pa"])
+        thermal = Conduction(tp, kernel, h, scene.domain, k, compile=compile, beams=beams, dx=scene.dx,
+                             losses=losses, h_over_dx=nm["h_over_dx"])
     # nothing moves in a scene without fluid (rigid solids at rest): no Verlet skin needed
     skin = nm["skin_over_dx"] * scene.dx if fluid is not None else 0.0
     sim = Simulation(scene.state, fluid, scene.domain, skin=skin,

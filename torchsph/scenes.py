@@ -304,10 +304,14 @@ def build_block(cfg, dtype, device) -> Scene:
     counts = [max(round(s / dx), 1) for s in size]
     origin = [-counts[0] * dx / 2, -counts[1] * dx / 2, -counts[2] * dx]
     x = lattice(counts, dx, origin=origin, dtype=dtype, device=device)
+    if sc["shape"] == "sphere":  # the ball inscribed in the box
+        c = torch.tensor([0.0, 0.0, -counts[2] * dx / 2], dtype=dtype, device=device)
+        x = x[((x - c) ** 2).sum(-1) < (0.5 * min(counts) * dx) ** 2]
     st = _solid(x, fl, dx, 3, sc["temperature_K"], dtype, device)
     lo = origin
     hi = [o + c * dx for o, c in zip(origin, counts)]
-    return Scene(st, Domain(lo, hi, [False] * 3), dx, {"counts": counts})
+    per = [sc["periodic_xy"], sc["periodic_xy"], False]
+    return Scene(st, Domain(lo, hi, per), dx, {"counts": counts})
 
 
 SCENES: dict[str, SceneSpec] = {
@@ -348,7 +352,9 @@ SCENES: dict[str, SceneSpec] = {
     "block": SceneSpec(
         {"size_m": Key("vec", doc="block size (x, y, z)"),
          "dx_m": Key("float", gt=0, doc="particle spacing"),
-         "temperature_K": Key("float", gt=0, doc="initial temperature")},
+         "temperature_K": Key("float", gt=0, doc="initial temperature"),
+         "shape": Key("str", default="box", choices=("box", "sphere"), doc="box, or the inscribed ball"),
+         "periodic_xy": Key("bool", default=False, doc="periodic in x and y (an infinite slab)")},
         (3,), build_block, None, "rigid heat-conducting block, top face at z = 0",
         has_fluid=False, needs_thermal=True),
 }

@@ -79,7 +79,7 @@ class Simulation:
             self.dvdt = self.fluid.momentum(state, state.v)
             self.drhodt, _ = self.fluid.continuity(state.v, state.m)
         self.dTdt = None  # specific enthalpy rate dh/dt (W/kg) when the scene has heat
-        self.energy = {"beam_J": 0.0, "walls_J": 0.0}  # integrated exactly as the step does
+        self.energy = {}  # J by kind (beam, conduction from walls, losses), integrated as the step does
         if thermal is not None:
             P, self._heat = thermal.power(state, state.T, 0.0)
             self.dTdt = P / state.m
@@ -187,10 +187,10 @@ class Simulation:
         if self.thermal is not None:
             P, heat = self.thermal.power(s, s.T, self.t + dt)  # 2 (W per particle; 0 on walls)
             self.dTdt = P / s.m
-            both = torch.stack([self._heat["beam"] + heat["beam"],
-                                self._heat["conduction"] + heat["conduction"]]).tolist()
-            self.energy["beam_J"] += 0.5 * dt * both[0]
-            self.energy["walls_J"] += 0.5 * dt * both[1]
+            names = list(heat)
+            both = torch.stack([self._heat[k] + heat[k] for k in names]).tolist()
+            for k, v in zip(names, both):
+                self.energy[k] = self.energy.get(k, 0.0) + 0.5 * dt * v
             self._heat = heat
             s.T = torch.where(self.thermal.wall_mask, s.T,
                               self.thermal.to_temperature(H_half + 0.5 * dt * self.dTdt, s.T))  # 3b
@@ -201,15 +201,17 @@ class Simulation:
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])
 
     def energy_balance(self) -> dict:
-        """Energy bookkeeping (J) since the start: absorbed beam energy, heat from the walls,
-        the change of stored energy sum m h(T), and the residual stored - (beam + walls)."""
+        """Energy bookkeeping (J) since the start: absorbed beam energy, heat from the walls
+        (conduction), radiated / convected / evaporated energy (negative), the change of the
+        stored energy sum m h(T), and the residual stored - (sum of the flows)."""
         if self.thermal is None:
             return {}
         stored = self.thermal.energy(self.state, self.thermal.prm, 0.0) - self._E0
-        out = dict(self.energy)
+        out = {f"{k}_J": v for k, v in self.energy.items()}  # gains > 0, losses < 0
+        flows = sum(self.energy.values())
         out["stored_J"] = stored
-        out["residual_J"] = stored - out["beam_J"] - out["walls_J"]
-        ref = max(abs(out["beam_J"]) + abs(out["walls_J"]), 1e-300)
+        out["residual_J"] = stored - flows
+        ref = max(sum(abs(v) for v in self.energy.values()), 1e-300)
         out["residual_rel"] = abs(out["residual_J"]) / ref
         return out
 

@@ -106,6 +106,93 @@ def laplacian_norm(x, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain
     return -(gather_nb(m, nb) / gather_nb(rho, nb) * r * kernel.dwdr(r, h)).sum(1) / x.shape[1]
 
 
+SIGMA_SB = 5.670374419e-8  # W/(m^2 K^4)
+R_GAS = 8.314462618  # J/(mol K)
+
+
+@dataclass
+class SurfaceLosses:
+    """Surface heat losses per unit area (W/m^2), each switched off by a zero coefficient:
+    radiation sigma_SB eps (T^4 - T0^4) (2.9, fixed), convection q_h (T - T0) (2.8), and
+    evaporation m_v [h_v + h(T)] (2.10) with m_v = 0.82 c_s p_v(T) sqrt(M / (2 pi R T)) and
+    p_v = 0.54 p_a exp(-h_v M / R (1/T - 1/T_v)) (2.6, fixed: h_v of evaporation, per kg)."""
+
+    ambient: float = 300.0  # T0, K
+    emissivity: float = 0.0
+    convection: float = 0.0  # q_h, W/(m^2 K)
+    evaporation: bool = False
+    boiling_point: float = 3090.0  # T_v, K
+    evaporation_heat: float = 6.1e6  # h_v, J/kg
+    molar_mass: float = 0.0558  # M, kg/mol
+    ambient_pressure: float = 101325.0  # p_a, Pa
+    sticking: float = 1.0  # c_s
+
+    def vapour_pressure(self, T: torch.Tensor) -> torch.Tensor:
+        CT = self.evaporation_heat * self.molar_mass / R_GAS
+        return 0.54 * self.ambient_pressure * torch.exp(-CT * (1.0 / T - 1.0 / self.boiling_point))
+
+    def evaporation_flux(self, T: torch.Tensor) -> torch.Tensor:
+        """Evaporated mass per unit area and time m_v (kg/(m^2 s))."""
+        CM = self.molar_mass / (2.0 * math.pi * R_GAS)
+        return 0.82 * self.sticking * self.vapour_pressure(T) * torch.sqrt(CM / T)
+
+    def flux(self, T: torch.Tensor, h_T: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Loss fluxes (W/m^2) by kind; ``h_T`` is the specific enthalpy h(T) carried away."""
+        out = {}
+        if self.emissivity > 0:
+            out["radiation"] = SIGMA_SB * self.emissivity * (T**4 - self.ambient**4)
+        if self.convection > 0:
+            out["convection"] = self.convection * (T - self.ambient)
+        if self.evaporation:
+            out["evaporation"] = self.evaporation_flux(T) * (self.evaporation_heat + h_T)
+        return out
+
+    @property
+    def active(self) -> bool:
+        return self.emissivity > 0 or self.convection > 0 or self.evaporation
+
+
+def colour_gradient_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
+    """grad c_i = (1/V_i) sum_j (V_i^2 + V_j^2) rho_i / (rho_i + rho_j) dW/dr e_ij (3.9) over
+    all material neighbours (c = 1 in all material): nonzero only where the kernel is
+    truncated, i.e. at a free surface. Points into the material."""
+    dx, r = pair_geometry(x, rows, nb, domain, h)
+    dWr = kernel.dwdr(r, h) / r
+    rho_i = rho.index_select(0, rows).unsqueeze(1)
+    rho_j = gather_nb(rho, nb)
+    Vi = m.index_select(0, rows).unsqueeze(1) / rho_i
+    Vj = gather_nb(m, nb) / rho_j
+    w = (Vi * Vi + Vj * Vj) * rho_i / (rho_i + rho_j) * dWr / Vi
+    return (w.unsqueeze(-1) * dx).sum(1)
+
+
+def flat_surface_delta(kernel: Kernel, h_over_dx: float) -> float:
+    """Sum over the layers of a flat lattice half-space of V |grad c| per unit area: the
+    factor by which the discrete surface delta overestimates the area (computed once)."""
+    import itertools
+
+    dx = 1.0
+    h = h_over_dx * dx
+    n = int(math.ceil(2 * h_over_dx)) + 2
+    d = kernel.dim
+    rng = range(-n, n + 1)
+    offs = torch.tensor(list(itertools.product(*([rng] * d))), dtype=torch.float64)
+    total = 0.0
+    for layer in range(n + 1):  # particle at depth (layer + 1/2) dx below the surface
+        z_i = -(layer + 0.5)
+        pts = offs.clone()
+        pts[:, -1] = pts[:, -1] + z_i  # neighbours on the lattice around the particle
+        keep = pts[:, -1] < 0
+        rel = torch.zeros(d, dtype=torch.float64)
+        rel[-1] = z_i
+        dxv = rel - pts[keep]
+        r = dxv.norm(dim=-1)
+        nz = r > 0
+        g = (kernel.dwdr(r[nz], h) / r[nz]).unsqueeze(-1) * dxv[nz]
+        total += float(g.sum(0).norm())  # V = dx^d = 1, per unit area: times dx^d / dx^(d-1)
+    return total
+
+
 def wall_temperature_pairs(x, T, rows, nb, mask, kernel: Kernel, h: float, domain: Domain):
     """Shepard averages sum_f T_f W / sum_f W over the conducting neighbours of walls."""
     dx, r = pair_geometry(x, rows, nb, domain, h)
@@ -121,7 +208,8 @@ class Conduction:
     between the last solid and the first wall layer rather than at the wall particles."""
 
     def __init__(self, params: ThermalParams, kernel: Kernel, h: float, domain: Domain,
-                 conductivity: torch.Tensor, compile: bool = False, beams=(), dx: float = 0.0):
+                 conductivity: torch.Tensor, compile: bool = False, beams=(), dx: float = 0.0,
+                 losses: SurfaceLosses | None = None, h_over_dx: float = 1.5):
         self.prm = params
         self.kernel = kernel
         self.h = h
@@ -129,6 +217,8 @@ class Conduction:
         self.k = conductivity  # (N,) W/(m K), per particle
         self.beams = list(beams)  # surface heat sources (2.7)
         self.dx = dx
+        self.losses = losses if losses is not None else SurfaceLosses()
+        self.delta_norm = flat_surface_delta(kernel, h_over_dx) if self.losses.active else 1.0
         self._fn = torch.compile(conduction_pairs, dynamic=True) if compile else conduction_pairs
         self._zeta_fn = torch.compile(laplacian_norm, dynamic=True) if compile else laplacian_norm
 
@@ -136,6 +226,7 @@ class Conduction:
         wall = state.phase == Phase.WALL
         self.wall_mask = wall
         self._zeta = None  # Laplacian normalisation, recomputed once per neighbour rebuild
+        self._area = None  # surface area per particle, likewise
         self.rows = torch.nonzero(~wall).squeeze(1)
         self.nb = nb.index_select(0, self.rows)
         self.rows_w = torch.nonzero(wall).squeeze(1)
@@ -187,7 +278,26 @@ class Conduction:
             P_beam = torch.where(inside, P_beam, torch.zeros_like(P_beam))
             totals["beam"] = P_beam.sum()
             P = P + P_beam
+        if self.losses.active:
+            if self._area is None:
+                self._area = self.surface_area(state)
+            fl = self.losses.flux(T, enthalpy(T, self.prm, 0.0))
+            for name, f in fl.items():
+                Pl = f * self._area
+                totals[name] = -Pl.sum()
+                P = P - Pl
         return P, totals
+
+    def surface_area(self, state: ParticleState) -> torch.Tensor:
+        """Area (m^2) of free surface each particle stands for: V_i |grad c_i| (the CSF
+        surface delta) divided by its flat-lattice sum, so that a flat surface gets
+        exactly its area. Particles with |grad c| h < 0.05 (the interior) get none."""
+        g = colour_gradient_pairs(state.x, state.m, state.rho, self.rows, self.nb, self.kernel,
+                                  self.h, self.domain)
+        gn = g.norm(dim=-1)
+        gn = torch.where(gn * self.h > 0.05, gn, torch.zeros_like(gn))
+        V = (state.m / state.rho).index_select(0, self.rows)
+        return embed(self.rows, V * gn / self.delta_norm, state.n)
 
     def rate(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
         """Specific enthalpy rate dh/dt = div(k grad T) / rho (W/kg). The energy equation is
