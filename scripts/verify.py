@@ -113,6 +113,54 @@ def stefan():
     return f"front position error {err * 100:+.2f} % at t = 0.5 s", "< 3 %"
 
 
+def beams():
+    from torchsph.beam import Beam, beam_power, gaussian_fraction_in_strip
+    from torchsph.scenes import lattice
+
+    def plate(n, dx, tilt):
+        x = lattice((n, 80, 5), dx, origin=(-n * dx / 2, -80 * dx / 2, -5 * dx), dtype=torch.float64)
+        c, s = math.cos(math.radians(tilt)), math.sin(math.radians(tilt))
+        return x @ torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=torch.float64).T
+
+    b = Beam(300.0, 0.85, 0.75e-3, (math.sqrt(0.5), 0.0, -math.sqrt(0.5)), (0.0, 0.0, 0.0))
+    one = lambda x: torch.ones(x.shape[0], dtype=torch.bool)  # noqa: E731
+    flat = float(beam_power(plate(110, 1e-4, 0.0), one(plate(110, 1e-4, 0.0)), b, 0, 1e-4).sum()) / 255 - 1
+    xt = plate(110, 1e-4, 20.0)
+    tilt = float(beam_power(xt, one(xt), b, 0, 1e-4).sum()) / 255 - 1
+    dx, d = 0.05e-3, 1.2e-3
+    n = round(d / dx)
+    xc = lattice((n, n, 140), dx, origin=(-d / 2, -d / 2, -3.5e-3), dtype=torch.float64)
+    xc = xc[(xc[:, 0] ** 2 + xc[:, 1] ** 2) < (d / 2) ** 2]
+    cyl = float(beam_power(xc, one(xc), b, 0, dx).sum()) / (255 * gaussian_fraction_in_strip(d, 0.75e-3)) - 1
+    return (f"flat {flat * 100:+.1e} %, plate tilted 20 deg {tilt * 100:+.1e} %, 1.2 mm wire "
+            f"{cyl * 100:+.3f} % (vs eta0 Q0 erf(d / sqrt(2) r))"), "1 % flat, 2 % tilted / wire"
+
+
+def radiation():
+    from torchsph.thermal import SIGMA_SB
+
+    scene, sim = case("radiating_slab", "scene.dx_m=0.2e-3", "run.t_end_s=0.5")
+    s = sim.state
+    M, A = float(s.m.sum()), 2 * 1.2e-3 * 1.2e-3
+    run_steps(sim, t_end=0.5)
+    T, n = 1500.0, 20000
+    f = lambda T: -SIGMA_SB * 0.4 * A * (T**4 - 300.0**4) / (M * 450.0)  # noqa: E731
+    for _ in range(n):
+        k1 = f(T); k2 = f(T + 0.5 / n / 2 * k1); k3 = f(T + 0.5 / n / 2 * k2); k4 = f(T + 0.5 / n * k3)  # noqa: E702
+        T += 0.5 / n / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    T_sph = float((s.T * s.m).sum() / s.m.sum())
+    return f"temperature drop {((1500 - T_sph) / (1500 - T) - 1) * 100:+.2f} % vs the ODE at t = 0.5 s", "< 1 %"
+
+
+def balance():
+    _, sim = case("beam_plate", "run.t_end_s=0.02", "thermal.emissivity=0.4", "thermal.evaporation=true")
+    run_steps(sim, t_end=0.02)
+    e = sim.energy_balance()
+    return (f"beam {e['beam_J']:.4f} J, radiated {e['radiation_J']:.2e} J, evaporated "
+            f"{e['evaporation_J']:.2e} J, stored {e['stored_J']:.4f} J; residual {e['residual_rel']:.1e} of the flows"
+            ), "< 1 % of absorbed"
+
+
 ROWS = [
     ("Kernel normalisation (cubic spline, Wendland C2; 2-D, 3-D)", kernels),
     ("Taylor-Green vortex, 50^2, t = 0.2, float64", taylor_green),
@@ -121,6 +169,9 @@ ROWS = [
     ("Transient conduction vs erfc (2-D prism, t = 0.3 s)", conduction),
     ("3-D Gaussian bump diffusion, 24^3, t = 4 ms", bump),
     ("One-phase Stefan melting vs Neumann (St = 0.83)", stefan),
+    ("Absorbed beam power, 300 W, eta0 = 0.85, beam at 45 deg", beams),
+    ("Radiative cooling of an isothermal slab vs the ODE", radiation),
+    ("Energy balance: beam + radiation + evaporation, 20 ms", balance),
 ]
 
 

@@ -46,23 +46,6 @@ BAD = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(BAD))
-def test_malformed_case_one_line_error(name, tmp_path):
-    text, parts = BAD[name]
-    (tmp_path / "case.toml").write_text(text)
-    with pytest.raises(CaseError) as e:
-        load_case(tmp_path)
-    msg = str(e.value)
-    assert "\n" not in msg
-    assert str(tmp_path / "case.toml") in msg
-    for p in parts:
-        assert p in msg, msg
-
-
-def test_at_least_ten_distinct_malformed_cases():
-    assert len(BAD) >= 10
-
-
 def test_good_cases_load():
     for case in sorted(p for p in CASES.iterdir() if (p / "case.toml").exists()):
         path, cfg = load_case(case)
@@ -119,18 +102,6 @@ BAD_THERMAL = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(BAD_THERMAL))
-def test_malformed_thermal_case(name, tmp_path):
-    text, parts = BAD_THERMAL[name]
-    (tmp_path / "case.toml").write_text(text)
-    with pytest.raises(CaseError) as e:
-        load_case(tmp_path)
-    msg = str(e.value)
-    assert "\n" not in msg
-    for p in parts:
-        assert p in msg, msg
-
-
 BEAM_GOOD = (CASES / "beam_plate" / "case.toml").read_text()
 BAD_BEAM = {
     "negative_power": (with_edit(BEAM_GOOD, "power_W = 300.0", "power_W = -300.0"), ["[beam 0] power_W = -300.0", "> 0"]),
@@ -144,13 +115,21 @@ BAD_BEAM = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(BAD_BEAM))
-def test_malformed_beam_case(name, tmp_path):
-    text, parts = BAD_BEAM[name]
+ALL_BAD = {**BAD, **BAD_THERMAL, **BAD_BEAM}
+
+
+@pytest.mark.parametrize("name", sorted(ALL_BAD))
+def test_malformed_case_one_line_error(name, tmp_path):
+    text, parts = ALL_BAD[name]
     (tmp_path / "case.toml").write_text(text)
     with pytest.raises(CaseError) as e:
         load_case(tmp_path)
     msg = str(e.value)
     assert "\n" not in msg
+    assert str(tmp_path / "case.toml") in msg
     for p in parts:
         assert p in msg, msg
+
+
+def test_at_least_ten_distinct_malformed_cases():
+    assert len(ALL_BAD) >= 10
