@@ -8,6 +8,7 @@ import h5py
 import numpy as np
 
 from conftest import CASES, ROOT
+from torchsph.io import read_snapshot
 
 DATASETS = {"position", "velocity", "density", "pressure", "temperature", "phase", "id"}
 
@@ -26,6 +27,8 @@ def test_cli_run_writes_outputs(tmp_path):
     assert summary["dt_binding_limit"] == "viscous"
     snaps = sorted(out.glob("snap_*.h5"))
     assert len(snaps) >= 2
+    snap = read_snapshot(snaps[-1])
+    assert snap["step"] == 30 and snap["dim"] == 2 and snap["position"].shape[1] == 3
     with h5py.File(snaps[-1]) as f:
         assert set(f.keys()) == DATASETS
         n = summary["n_particles"]

@@ -58,6 +58,9 @@ def test_effective_heat_capacity_adds_latent_heat_exactly():
     assert integral == pytest.approx(450.0 * 2700.0 + 82_000.0, rel=1e-9)
     h = enthalpy(torch.tensor([3000.0], dtype=torch.float64), prm, 300.0)
     assert float(h) == pytest.approx(integral, rel=1e-9)
+    from torchsph.thermal import liquid_fraction
+    phi = liquid_fraction(torch.tensor([1700.0, 1723.15, 1738.15, 1753.15, 1800.0], dtype=torch.float64), prm)
+    assert phi.tolist() == pytest.approx([0.0, 0.0, 0.5, 1.0, 1.0])
 
 
 def conduction_error(nx):

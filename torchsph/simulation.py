@@ -167,7 +167,7 @@ class Simulation:
             H_half = H + 0.5 * dt * self.dTdt  # 1d
             # extrapolated for the evaluation at the end of the step; walls keep theirs
             s.T = torch.where(self.thermal.wall_mask, s.T,
-                              self.thermal.to_temperature(H + dt * self.dTdt, s.T))
+                              self.thermal.to_temperature(H + dt * self.dTdt))
         shift = None
         if self.fluid is not None:
             self.drhodt, shift = self.fluid.continuity(  # at x_n, with u_{n+1/2}
@@ -193,7 +193,7 @@ class Simulation:
                 self.energy[k] = self.energy.get(k, 0.0) + 0.5 * dt * v
             self._heat = heat
             s.T = torch.where(self.thermal.wall_mask, s.T,
-                              self.thermal.to_temperature(H_half + 0.5 * dt * self.dTdt, s.T))  # 3b
+                              self.thermal.to_temperature(H_half + 0.5 * dt * self.dTdt))  # 3b
         self.t += dt
         self.step += 1
         self.info = self._measure()

@@ -70,9 +70,6 @@ class ParticleState:
     def clone(self) -> "ParticleState":
         return ParticleState(**{f.name: getattr(self, f.name).clone() for f in fields(self)})
 
-    def select(self, index: torch.Tensor) -> "ParticleState":
-        return ParticleState(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
-
     @staticmethod
     def cat(states: list["ParticleState"]) -> "ParticleState":
         return ParticleState(**{f.name: torch.cat([getattr(s, f.name) for s in states])

@@ -49,8 +49,7 @@ def enthalpy(T: torch.Tensor, prm: ThermalParams, T_ref: float) -> torch.Tensor:
     return h
 
 
-def temperature_from_enthalpy(H: torch.Tensor, prm: ThermalParams, T_ref: float,
-                              T_guess: torch.Tensor | None = None) -> torch.Tensor:
+def temperature_from_enthalpy(H: torch.Tensor, prm: ThermalParams, T_ref: float) -> torch.Tensor:
     """Invert h(T) = H (h from :func:`enthalpy`): exact for no latent heat; with latent
     heat, bisection on the bracket the latent part allows (h is strictly increasing, as
     c_eff >= c_p > 0), then two Newton polishes. Vectorised over particles."""
@@ -267,8 +266,11 @@ class Conduction:
         return embed(self.rows, z, state.n) + self.wall_mask.to(z.dtype)
 
     def power(self, state: ParticleState, T: torch.Tensor, t: float) -> tuple[torch.Tensor, dict]:
-        """Heat per particle (W): conduction V_i div(k grad T) plus beam power; and the
-        totals {"conduction": net heat from walls, "beam": absorbed} (W)."""
+        """Heat per particle (W): conduction V_i div(k grad T), beam power, minus surface
+        losses; and the totals by kind (W). The step integrates the specific enthalpy,
+        dh/dt = P_i / m_i, and recovers T from h(T) = int c_eff dT (2.11): the same model as
+        rho c_eff dT/dt = div(k grad T) + sources, but the latent heat is absorbed exactly
+        however narrow the mushy interval is compared with one step's temperature change."""
         P_cond = self.heat_rate(state, T) * (state.m / state.rho)
         P = P_cond
         totals = {"conduction": P_cond.sum(), "beam": torch.zeros((), dtype=T.dtype, device=T.device)}
@@ -299,18 +301,11 @@ class Conduction:
         V = (state.m / state.rho).index_select(0, self.rows)
         return embed(self.rows, V * gn / self.delta_norm, state.n)
 
-    def rate(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
-        """Specific enthalpy rate dh/dt = div(k grad T) / rho (W/kg). The energy equation is
-        integrated in h and T recovered from h(T) = int c_eff dT (2.11): the same model as
-        rho c_eff dT/dt = div(k grad T), but the latent heat is absorbed exactly however
-        narrow the mushy interval is compared with one step's temperature change."""
-        return self.heat_rate(state, T) / state.rho
-
     def to_enthalpy(self, T: torch.Tensor) -> torch.Tensor:
         return enthalpy(T, self.prm, 0.0)
 
-    def to_temperature(self, H: torch.Tensor, T_guess: torch.Tensor | None = None) -> torch.Tensor:
-        return temperature_from_enthalpy(H, self.prm, 0.0, T_guess)
+    def to_temperature(self, H: torch.Tensor) -> torch.Tensor:
+        return temperature_from_enthalpy(H, self.prm, 0.0)
 
     def limit(self, state: ParticleState) -> float:
         """Thermal time-step limit 0.125 rho c_p h^2 / k (3.17, fixed)."""
@@ -326,8 +321,8 @@ class Conduction:
         return float((state.m * enthalpy(state.T, prm, T_ref) * inside).sum())
 
 
-__all__ = ["ThermalParams", "Conduction", "effective_heat_capacity", "enthalpy", "liquid_fraction",
-           "conduction_pairs", "dot"]
+__all__ = ["ThermalParams", "Conduction", "SurfaceLosses", "effective_heat_capacity", "enthalpy",
+           "temperature_from_enthalpy", "liquid_fraction", "conduction_pairs"]
 
 
 def neumann_lambda(stefan: float) -> float:
