@@ -97,6 +97,13 @@ BAD_THERMAL = {
     "evaporation_not_bool": (with_edit(THERMAL_GOOD, "specific_heat_J_kgK = 450.0",
                                        "specific_heat_J_kgK = 450.0\nevaporation = 1"),
                              ["[thermal] evaporation = 1", "true or false"]),
+    "phase_change_without_liquidus": (with_edit(THERMAL_GOOD, "specific_heat_J_kgK = 450.0",
+                                                "specific_heat_J_kgK = 450.0\nphase_change = true\nsolidus_K = 1723.0"),
+                                      ["missing required key [thermal] liquidus_K (phase_change = true)"]),
+    "phase_change_without_fluid": (with_edit(THERMAL_GOOD, "specific_heat_J_kgK = 450.0",
+                                             "specific_heat_J_kgK = 450.0\nphase_change = true\n"
+                                             "solidus_K = 1723.0\nliquidus_K = 1753.0"),
+                                   ["missing required key [fluid] c0_m_s (phase_change = true"]),
     "fluid_case_without_c0": (with_edit(GOOD, "c0_m_s = 10.0        # 10 U: Mach 0.1\n", ""),
                               ["missing required key [fluid] c0_m_s"]),
 }

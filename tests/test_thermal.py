@@ -188,3 +188,33 @@ def test_vapour_pressure_at_boiling_point():
     assert float(p[0]) == pytest.approx(0.54 * 101325.0)
     CT = 6.1e6 * 0.0558 / 8.314462618
     assert float(p[1]) == pytest.approx(0.54 * 101325.0 * math.exp(-CT * (1 / 2000 - 1 / 3090)))
+
+
+def test_melting_and_resolidification_rejoin_the_moving_body():
+    """A hot spot on a moving rigid block melts (its particles join the fluid), cools by
+    conduction, and re-solidifies: every particle ends rigid with the block's velocity;
+    particle count and mass are unchanged."""
+    V = [0.015, 0.0, 0.0]
+    _, cfg = load_case(CASES / "beam_plate", [
+        "scene.size_m=[3e-3, 3e-3, 1e-3]", "thermal.phase_change=true", "fluid.c0_m_s=2.0",
+        "fluid.viscosity_Pa_s=0.005", f"scene.velocity_m_s={V}", "run.t_end_s=0.02"])
+    cfg.pop("beam")
+    scene, sim = make_simulation(cfg)
+    s = sim.state
+    n0, m0 = s.n, float(s.m.sum())
+    hot = (s.x[:, 2] > -0.4e-3) & (s.x[:, 0].abs() < 0.3e-3) & (s.x[:, 1].abs() < 0.3e-3)
+    s.T = torch.where(hot, torch.full_like(s.T, 2500.0), s.T)
+    run_steps(sim, steps=1)
+    assert sim.n_fluid == int(hot.sum()) > 0  # melted: T > T_L
+    assert torch.all(s.phase[hot] == Phase.FLUID)
+    seen_mushy_fluid = False
+    for _ in range(400):
+        run_steps(sim, steps=1)
+        f = s.phase == Phase.FLUID
+        assert torch.all(s.T[f] >= cfg["thermal"]["solidus_K"])  # fluid never below T_S
+        seen_mushy_fluid |= bool((f & (s.T < cfg["thermal"]["liquidus_K"])).any())
+        if sim.n_fluid == 0:
+            break
+    assert sim.n_fluid == 0 and seen_mushy_fluid
+    assert s.n == n0 and float(s.m.sum()) == m0
+    assert torch.allclose(s.v, torch.tensor(V, dtype=s.v.dtype).expand_as(s.v), atol=1e-12)

@@ -159,6 +159,10 @@ THERMAL = {
     "latent_heat_J_kg": Key("float", default=0.0, ge=0, doc="latent heat of melting h_f"),
     "solidus_K": Key("float", default=None, gt=0, doc="solidus T_S (with latent heat)"),
     "liquidus_K": Key("float", default=None, gt=0, doc="liquidus T_L (with latent heat)"),
+    "phase_change": Key("bool", default=False,
+                        doc="solid particles melt into the fluid above T_L, melt solidifies below T_S"),
+    "mushy_drag_1_s": Key("float", default=1.0e4, ge=0,
+                          doc="Carman-Kozeny drag C (1 - phi)^2 / (phi^3 + 1e-3) in the mushy zone, 1/s"),
     "ambient_K": Key("float", default=300.0, gt=0, doc="ambient temperature T0 of the surface losses"),
     "emissivity": Key("float", default=0.0, ge=0, le=1, doc="radiation sigma eps (T^4 - T0^4); 0 = off"),
     "convection_W_m2K": Key("float", default=0.0, ge=0, doc="convection q_h (T - T0); 0 = off (vacuum)"),
@@ -274,6 +278,15 @@ def validate(raw: dict) -> dict:
             for key in ("solidus_K", "liquidus_K"):
                 if th[key] is None:
                     raise CaseError(f"missing required key [thermal] {key} (latent_heat_J_kg > 0)")
+        if th["phase_change"]:
+            for key in ("solidus_K", "liquidus_K"):
+                if th[key] is None:
+                    raise CaseError(f"missing required key [thermal] {key} (phase_change = true)")
+            for key in ("c0_m_s", "viscosity_Pa_s"):
+                if cfg["fluid"][key] is None:
+                    raise CaseError(f"missing required key [fluid] {key} (phase_change = true: "
+                                    "melted particles are fluid)")
+        if th["solidus_K"] is not None and th["liquidus_K"] is not None:
             if not th["liquidus_K"] > th["solidus_K"]:
                 raise CaseError(f"[thermal] liquidus_K = {th['liquidus_K']}: must be > solidus_K = "
                                 f"{th['solidus_K']}")

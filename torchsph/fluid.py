@@ -121,6 +121,16 @@ def wall_pairs(x, p, rho, v, rows, nb, mask, g, kernel: Kernel, h: float, domain
     return sumW, sp, sv
 
 
+def neighbour_average(x, v, rows, nb, weight, kernel: Kernel, h: float, domain: Domain):
+    """Shepard average sum_j w_j v_j W_ij / sum_j w_j W_ij over the neighbours of ``rows``
+    (``weight`` selects which neighbours count), and the weight sum (0: none)."""
+    dx, r = pair_geometry(x, rows, nb, domain, h)
+    Wk = kernel.w(r, h) * gather_nb(weight, nb)
+    sW = Wk.sum(1)
+    avg = (gather_nb(v, nb) * Wk.unsqueeze(-1)).sum(1) / torch.where(sW > 0, sW, torch.ones_like(sW)).unsqueeze(-1)
+    return avg, sW
+
+
 def embed(rows: torch.Tensor, vals: torch.Tensor, n: int) -> torch.Tensor:
     """Full-length array holding ``vals`` at ``rows`` and zeros elsewhere."""
     if rows.numel() == n:  # rows = all particles, in order (nonzero of an all-true mask)

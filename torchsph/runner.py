@@ -30,7 +30,8 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None) -> tuple[S
     kernel = make_kernel(nm["kernel"], dim)
     compile = nm["compile"] if compile is None else compile
     fluid = thermal = None
-    if SCENES[cfg["scene"]["type"]].has_fluid:
+    phase_change = "thermal" in cfg and cfg["thermal"]["phase_change"]
+    if SCENES[cfg["scene"]["type"]].has_fluid or phase_change:
         prm = FluidParams(rho0=fl["rho0_kg_m3"], c0=fl["c0_m_s"], eta=fl["viscosity_Pa_s"],
                           gravity=tuple(fl["gravity_m_s2"]), body_force=tuple(fl["body_force_m_s2"]),
                           gamma=fl["gamma"], density_diffusion=nm["density_diffusion"],
@@ -57,7 +58,9 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None) -> tuple[S
     sim = Simulation(scene.state, fluid, scene.domain, skin=skin,
                      cfl=nm["cfl"], dt_fixed=nm["dt_s"], allow_unstable_dt=nm["allow_unstable_dt"],
                      max_compression=nm["max_compression"], dx=scene.dx,
-                     damping_time=nm["damping_time_s"], thermal=thermal)
+                     damping_time=nm["damping_time_s"], thermal=thermal,
+                     phase_change=(cfg["thermal"]["solidus_K"], cfg["thermal"]["liquidus_K"],
+                                   cfg["thermal"]["mushy_drag_1_s"]) if phase_change else None)
     return scene, sim
 
 

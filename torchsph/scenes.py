@@ -308,6 +308,7 @@ def build_block(cfg, dtype, device) -> Scene:
         c = torch.tensor([0.0, 0.0, -counts[2] * dx / 2], dtype=dtype, device=device)
         x = x[((x - c) ** 2).sum(-1) < (0.5 * min(counts) * dx) ** 2]
     st = _solid(x, fl, dx, 3, sc["temperature_K"], dtype, device)
+    st.v[:] = torch.as_tensor(sc["velocity_m_s"], dtype=dtype, device=device)  # rigid motion
     lo = origin
     hi = [o + c * dx for o, c in zip(origin, counts)]
     per = [sc["periodic_xy"], sc["periodic_xy"], False]
@@ -354,7 +355,8 @@ SCENES: dict[str, SceneSpec] = {
          "dx_m": Key("float", gt=0, doc="particle spacing"),
          "temperature_K": Key("float", gt=0, doc="initial temperature"),
          "shape": Key("str", default="box", choices=("box", "sphere"), doc="box, or the inscribed ball"),
-         "periodic_xy": Key("bool", default=False, doc="periodic in x and y (an infinite slab)")},
+         "periodic_xy": Key("bool", default=False, doc="periodic in x and y (an infinite slab)"),
+         "velocity_m_s": Key("vec", default=None, doc="rigid velocity of the block (its body)")},
         (3,), build_block, None, "rigid heat-conducting block, top face at z = 0",
         has_fluid=False, needs_thermal=True),
 }

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .fluid import WeaklyCompressibleFluid
+from .fluid import WeaklyCompressibleFluid, neighbour_average
 from .thermal import Conduction
 from .neighbors import Domain, VerletList
 from .state import ParticleState, Phase
@@ -50,18 +50,23 @@ class Simulation:
     def __init__(self, state: ParticleState, fluid: WeaklyCompressibleFluid | None, domain: Domain,
                  skin: float, cfl: float = 0.25, dt_fixed: float | None = None,
                  allow_unstable_dt: bool = False, max_compression: float = 0.3, dx: float = 0.0,
-                 damping_time: float = 0.0, thermal: Conduction | None = None):
+                 damping_time: float = 0.0, thermal: Conduction | None = None,
+                 phase_change: tuple[float, float, float] | None = None):
         """``fluid`` and ``thermal`` are the physics a scene declares; either may be None
         and then costs nothing (a conduction study has no momentum, a flow no energy)."""
         self.state = state
         self.fluid_mask = state.phase == Phase.FLUID
         self.n_fluid = int(self.fluid_mask.sum())
-        self.fluid = fluid if self.n_fluid > 0 else None
+        self.fluid_model = fluid  # active only while there are fluid particles
         self.thermal = thermal
-        if self.fluid is None and thermal is None:
+        # (T_S, T_L, C): solids melt above T_L, melt freezes below T_S, mushy drag C
+        self.phase_change = phase_change
+        if phase_change is not None and (fluid is None or thermal is None):
+            raise ValueError("Simulation: phase change needs both the fluid and the thermal model")
+        if fluid is None and thermal is None:
             raise ValueError("Simulation: the scene declares no physics (no fluid, no thermal)")
         self.domain = domain
-        some = self.fluid if self.fluid is not None else thermal
+        some = fluid if fluid is not None else thermal
         self.h = some.h
         self.cfl = cfl
         self.dt_fixed = dt_fixed
@@ -89,12 +94,20 @@ class Simulation:
         if dt_fixed is not None:
             self.check_fixed_dt()
 
+    @property
+    def fluid(self) -> WeaklyCompressibleFluid | None:
+        """The fluid model while the scene has fluid particles, else None (costs nothing)."""
+        return self.fluid_model if self.n_fluid > 0 else None
+
     # --- neighbours ---------------------------------------------------------
     def _refresh_pairs(self, force: bool = False):
         if self.nl.update(self.state.x, force=force):
-            for phys in (self.fluid, self.thermal):
-                if phys is not None:
-                    phys.select_pairs(self.state, self.nl.nb, self.nl.mask)
+            self._select()
+
+    def _select(self):
+        for phys in (self.fluid, self.thermal):
+            if phys is not None:
+                phys.select_pairs(self.state, self.nl.nb, self.nl.mask)
 
     @property
     def n_pairs(self) -> int:
@@ -196,9 +209,59 @@ class Simulation:
                               self.thermal.to_temperature(H_half + 0.5 * dt * self.dTdt))  # 3b
         self.t += dt
         self.step += 1
+        if self.phase_change is not None:
+            self._update_phases(dt)
         self.info = self._measure()
         self._check_finite(v_tilde, dt, limit)
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])
+
+    def _solid_velocity(self, rows: torch.Tensor):
+        """Shepard average of the rigid-solid neighbours' velocity around ``rows`` (the
+        velocity of the body a particle rests on) and whether any solid is near."""
+        s = self.state
+        nb = self.nl.nb.index_select(0, rows)
+        solid = (s.phase == Phase.SOLID).to(s.dtype)
+        m = self.fluid_model
+        avg, sW = neighbour_average(s.x, s.v, rows, nb, solid, m.kernel, m.h, self.domain)
+        return avg, sW > 0
+
+    def _update_phases(self, dt: float):
+        """Solid particles above T_L join the fluid; fluid particles below T_S re-join the
+        rigid body they rest on (its velocity); fluid in the mushy zone is dragged towards
+        the local solid velocity with the Carman-Kozeny rate C (1 - phi)^2 / (phi^3 + 1e-3),
+        integrated exactly (u - u_s decays as exp(-rate dt)), so any C is stable.
+        Carman-Kozeny rather than a viscosity ramp: the harmonic mean of (3.8) lets the
+        low melt viscosity dominate a pair, so a viscosity ramp barely damps."""
+        T_S, T_L, C = self.phase_change
+        s = self.state
+        melt = (s.phase == Phase.SOLID) & (s.T > T_L)
+        freeze = (s.phase == Phase.FLUID) & (s.T < T_S)
+        n_melt, n_freeze = torch.stack([melt.sum(), freeze.sum()]).tolist()
+        if n_freeze:
+            rows = torch.nonzero(freeze).squeeze(1)
+            v_s, near = self._solid_velocity(rows)
+            s.v = s.v.index_copy(0, rows, torch.where(near.unsqueeze(-1), v_s, s.v.index_select(0, rows)))
+            s.phase = torch.where(freeze, torch.full_like(s.phase, int(Phase.SOLID)), s.phase)
+        if n_melt:
+            s.phase = torch.where(melt, torch.full_like(s.phase, int(Phase.FLUID)), s.phase)
+        if n_melt or n_freeze:
+            self.fluid_mask = s.phase == Phase.FLUID
+            self.n_fluid = int(self.fluid_mask.sum())
+            self._select()
+            self.dvdt = torch.zeros_like(s.v)
+            self.drhodt = torch.zeros_like(s.rho)
+            if self.fluid is not None:  # accelerations and pair geometry of the new fluid set
+                self.dvdt = self.fluid.momentum(s, s.v)
+        if self.fluid is None or C <= 0:
+            return
+        rows = self.fluid_model.rows_f
+        T = s.T.index_select(0, rows)
+        phi = ((T - T_S) / (T_L - T_S)).clamp(0.0, 1.0)
+        rate = C * (1.0 - phi) ** 2 / (phi**3 + 1e-3)
+        v_s, near = self._solid_velocity(rows)
+        v = s.v.index_select(0, rows)
+        decay = torch.where(near, torch.exp(-rate * dt), torch.ones_like(rate)).unsqueeze(-1)
+        s.v = s.v.index_copy(0, rows, v_s + (v - v_s) * decay)
 
     def energy_balance(self) -> dict:
         """Energy bookkeeping (J) since the start: absorbed beam energy, heat from the walls
