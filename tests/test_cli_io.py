@@ -57,3 +57,14 @@ def test_cli_reports_blow_up_as_one_line(tmp_path):
     assert r.returncode == 3
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "blow-up at step" in lines[0] and "largest term" in lines[0]
+
+
+def test_cli_thermal_run_reports_energy_balance(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "torchsph", str(CASES / "beam_plate"), "--out", str(tmp_path),
+                        "--steps", "5", "--quiet", "--set", "thermal.emissivity=0.4"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "balance residual" in r.stdout
+    e = json.loads((tmp_path / "summary.json").read_text())["energy"]
+    assert e["beam_J"] > 0 and e["radiation_J"] < 0
+    assert abs(e["residual_J"]) < 1e-9 * e["beam_J"]

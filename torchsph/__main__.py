@@ -53,6 +53,11 @@ def main(argv=None) -> int:
           f"{s['wall_s']:.2f} s wall, {s['particle_steps_per_s']:.3g} particle-steps/s, "
           f"dt bound by {s['dt_binding_limit']}"
           + (f", Mach {s['mach_max']:.3f}" if s["mach_max"] is not None else "") + f"; output in {out}")
+    e = s.get("energy") or {}
+    if e:
+        flows = ", ".join(f"{k[:-2]} {v:+.4g} J" for k, v in e.items() if k.endswith("_J") and k != "residual_J")
+        print(f"torchsph: energy: {flows}; balance residual {e['residual_J']:.3g} J "
+              f"({e['residual_rel']:.2g} of the flows)")
     return 0
 
 
