@@ -218,3 +218,20 @@ def test_melting_and_resolidification_rejoin_the_moving_body():
     assert sim.n_fluid == 0 and seen_mushy_fluid
     assert s.n == n0 and float(s.m.sum()) == m0
     assert torch.allclose(s.v, torch.tensor(V, dtype=s.v.dtype).expand_as(s.v), atol=1e-12)
+
+
+def test_rosenthal_isotherm():
+    """Moving beam (800 W, r = 0.5 mm, 15 mm/s) over a thick steel plate in conduction mode:
+    at t = 0.45 s the T_L isotherm's length and width are within 5 % of Rosenthal's
+    point-source solution and of its superposition over the Gaussian spot. dx = 0.25 mm,
+    24 x 12 x 6 mm plate (1.1e5 particles), pair loops compiled; the finer run is
+    scripts/rosenthal.py, quoted in the README."""
+    from torchsph.rosenthal import run_study
+
+    r = run_study(0.25e-3, t_end=0.45, power=800.0, radius=0.5e-3, x_start=-8e-3, length=24e-3,
+                  width=12e-3, depth=6e-3, compile=True)
+    L, W = r["sph"]
+    print("Rosenthal:", r)
+    for ref in ("gaussian", "point"):
+        Lr, Wr = r[ref]
+        assert abs(L / Lr - 1) < 0.05 and abs(W / Wr - 1) < 0.05, (ref, L, W, Lr, Wr)
