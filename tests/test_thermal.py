@@ -206,7 +206,7 @@ def test_melting_and_resolidification_rejoin_the_moving_body():
     s.T = torch.where(hot, torch.full_like(s.T, 2500.0), s.T)
     run_steps(sim, steps=1)
     assert sim.n_fluid == int(hot.sum()) > 0  # melted: T > T_L
-    assert torch.all(s.phase[hot] == Phase.FLUID)
+    assert torch.all(s.phase[hot] == Phase.FLUID) and torch.all(s.body[hot] == 0)  # left the block
     seen_mushy_fluid = False
     for _ in range(400):
         run_steps(sim, steps=1)
@@ -218,6 +218,7 @@ def test_melting_and_resolidification_rejoin_the_moving_body():
     assert sim.n_fluid == 0 and seen_mushy_fluid
     assert s.n == n0 and float(s.m.sum()) == m0
     assert torch.allclose(s.v, torch.tensor(V, dtype=s.v.dtype).expand_as(s.v), atol=1e-12)
+    assert torch.all(s.body == 1)  # re-joined the block it rests on
 
 
 def test_rosenthal_isotherm():

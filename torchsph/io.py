@@ -21,6 +21,7 @@ DATASETS = {
     "temperature": ("T", "Scalar"),
     "phase": ("phase", "Scalar"),
     "id": ("id", "Scalar"),
+    "body": ("body", "Scalar"),
 }
 
 
@@ -82,7 +83,7 @@ def write_xdmf(path: Path, snapshots: list[tuple[float, str]], n: int, float_dty
                 shape, dt = (n, 3), fdt
             elif fld == "phase":
                 shape, dt = (n,), np.dtype(np.int32)
-            elif fld == "id":
+            elif fld in ("id", "body"):
                 shape, dt = (n,), np.dtype(np.int64)
             else:
                 shape, dt = (n,), fdt

@@ -309,6 +309,7 @@ def build_block(cfg, dtype, device) -> Scene:
         x = x[((x - c) ** 2).sum(-1) < (0.5 * min(counts) * dx) ** 2]
     st = _solid(x, fl, dx, 3, sc["temperature_K"], dtype, device)
     st.v[:] = torch.as_tensor(sc["velocity_m_s"], dtype=dtype, device=device)  # rigid motion
+    st.body[:] = 1  # the block is body 1
     lo = origin
     hi = [o + c * dx for o, c in zip(origin, counts)]
     per = [sc["periodic_xy"], sc["periodic_xy"], False]

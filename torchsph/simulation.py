@@ -63,6 +63,13 @@ class Simulation:
         self.phase_change = phase_change
         if phase_change is not None and (fluid is None or thermal is None):
             raise ValueError("Simulation: phase change needs both the fluid and the thermal model")
+        # velocity of each rigid body (row b = body b; row 0 unused), from its solid particles
+        nbody = int(state.body.max()) + 1 if state.n else 1
+        solid = (state.phase == Phase.SOLID).to(state.dtype).unsqueeze(-1)
+        tot = torch.zeros(nbody, state.dim, dtype=state.dtype, device=state.device).index_add_(
+            0, state.body, state.v * solid)
+        cnt = torch.zeros(nbody, 1, dtype=state.dtype, device=state.device).index_add_(0, state.body, solid)
+        self.body_velocity = tot / cnt.clamp_min(1.0)
         if fluid is None and thermal is None:
             raise ValueError("Simulation: the scene declares no physics (no fluid, no thermal)")
         self.domain = domain
@@ -215,6 +222,23 @@ class Simulation:
         self._check_finite(v_tilde, dt, limit)
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])
 
+    def _resting_body(self, rows: torch.Tensor):
+        """For each of ``rows``: the rigid body with the largest kernel weight among its
+        solid neighbours (0 where no solid is near)."""
+        s = self.state
+        nb = self.nl.nb.index_select(0, rows)
+        m = self.fluid_model
+        solid = (s.phase == Phase.SOLID).to(s.dtype)
+        best = torch.zeros(rows.numel(), dtype=torch.long, device=s.device)
+        best_w = torch.zeros(rows.numel(), dtype=s.dtype, device=s.device)
+        for b in range(1, self.body_velocity.shape[0]):  # a loop over bodies (a handful)
+            w = solid * (s.body == b).to(s.dtype)
+            _, sW = neighbour_average(s.x, s.v, rows, nb, w, m.kernel, m.h, self.domain)
+            take = sW > best_w
+            best = torch.where(take, torch.full_like(best, b), best)
+            best_w = torch.where(take, sW, best_w)
+        return best
+
     def _solid_velocity(self, rows: torch.Tensor):
         """Shepard average of the rigid-solid neighbours' velocity around ``rows`` (the
         velocity of the body a particle rests on) and whether any solid is near."""
@@ -226,8 +250,9 @@ class Simulation:
         return avg, sW > 0
 
     def _update_phases(self, dt: float):
-        """Solid particles above T_L join the fluid; fluid particles below T_S re-join the
-        rigid body they rest on (its velocity); fluid in the mushy zone is dragged towards
+        """Solid particles above T_L join the fluid (and leave their body); fluid particles
+        below T_S join the rigid body they rest on (the one with the largest kernel weight
+        among their solid neighbours) and take its velocity; fluid in the mushy zone is dragged towards
         the local solid velocity with the Carman-Kozeny rate C (1 - phi)^2 / (phi^3 + 1e-3),
         integrated exactly (u - u_s decays as exp(-rate dt)), so any C is stable.
         Carman-Kozeny rather than a viscosity ramp: the harmonic mean of (3.8) lets the
@@ -237,13 +262,16 @@ class Simulation:
         melt = (s.phase == Phase.SOLID) & (s.T > T_L)
         freeze = (s.phase == Phase.FLUID) & (s.T < T_S)
         n_melt, n_freeze = torch.stack([melt.sum(), freeze.sum()]).tolist()
-        if n_freeze:
+        if n_freeze:  # join the body it rests on and take that body's velocity
             rows = torch.nonzero(freeze).squeeze(1)
-            v_s, near = self._solid_velocity(rows)
-            s.v = s.v.index_copy(0, rows, torch.where(near.unsqueeze(-1), v_s, s.v.index_select(0, rows)))
+            b = self._resting_body(rows)
+            v_b = self.body_velocity.index_select(0, b)
+            s.v = s.v.index_copy(0, rows, torch.where((b > 0).unsqueeze(-1), v_b, s.v.index_select(0, rows)))
+            s.body = s.body.index_copy(0, rows, b)
             s.phase = torch.where(freeze, torch.full_like(s.phase, int(Phase.SOLID)), s.phase)
-        if n_melt:
+        if n_melt:  # melt leaves its body
             s.phase = torch.where(melt, torch.full_like(s.phase, int(Phase.FLUID)), s.phase)
+            s.body = torch.where(melt, torch.zeros_like(s.body), s.body)
         if n_melt or n_freeze:
             self.fluid_mask = s.phase == Phase.FLUID
             self.n_fluid = int(self.fluid_mask.sum())

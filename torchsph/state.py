@@ -16,7 +16,7 @@ class Phase(enum.IntEnum):
 
 
 FLOAT_FIELDS = ("x", "v", "rho", "m", "p", "T")
-INT_FIELDS = ("phase", "id")
+INT_FIELDS = ("phase", "id", "body")
 
 
 @dataclass
@@ -24,7 +24,10 @@ class ParticleState:
     """Fields of N particles in d dimensions (SI units).
 
     x, v: (N, d) position and velocity; rho, m, p, T: (N,) density, mass, pressure and
-    temperature; phase: (N,) int8 :class:`Phase`; id: (N,) int64 stable particle id.
+    temperature; phase: (N,) int8 :class:`Phase`; id: (N,) int64 stable particle id;
+    body: (N,) int64 rigid body a particle belongs to (0: none, e.g. melt; 1, 2, ...:
+    substrate, wire) -- a solid moves with its body's velocity, melt that solidifies
+    joins the body it rests on.
     """
 
     x: torch.Tensor
@@ -35,6 +38,7 @@ class ParticleState:
     T: torch.Tensor
     phase: torch.Tensor
     id: torch.Tensor
+    body: torch.Tensor
 
     def __post_init__(self):
         n = self.x.shape[0]
@@ -76,7 +80,7 @@ class ParticleState:
                                 for f in fields(ParticleState)})
 
     @staticmethod
-    def create(x, v, rho, m, phase, T=None, p=None, id=None, dtype=torch.float64,
+    def create(x, v, rho, m, phase, T=None, p=None, id=None, body=0, dtype=torch.float64,
                device="cpu") -> "ParticleState":
         """Build a state from array-likes; missing T/p default to 0 and ids to 0..N-1."""
         f = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
@@ -88,4 +92,5 @@ class ParticleState:
             p=full(0.0 if p is None else p), T=full(0.0 if T is None else T),
             phase=torch.as_tensor(phase, dtype=torch.int8, device=device).expand(n).clone(),
             id=(torch.arange(n, device=device) if id is None
-                else torch.as_tensor(id, dtype=torch.long, device=device)))
+                else torch.as_tensor(id, dtype=torch.long, device=device)),
+            body=torch.as_tensor(body, dtype=torch.long, device=device).expand(n).clone())
