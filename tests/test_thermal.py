@@ -178,6 +178,11 @@ def test_energy_balance_with_beam_radiation_and_evaporation():
     for a in range(3):
         inner &= (x[:, a] > lo[a] + 2 * h) & (x[:, a] < hi[a] - 2 * h)
     assert inner.any() and float(area[inner].abs().max()) == 0.0
+    # outward normals: +z on the top face away from the edges, 0 inside
+    n = sim.thermal.normal
+    face = (x[:, 2] > -cfg["scene"]["dx_m"]) & (x[:, 0].abs() < 2e-3) & (x[:, 1].abs() < 1.5e-3)
+    assert torch.allclose(n[face], torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype).expand_as(n[face]), atol=1e-9)
+    assert float(n[inner].abs().max()) == 0.0
 
 
 def test_vapour_pressure_at_boiling_point():

@@ -293,11 +293,16 @@ class Conduction:
     def surface_area(self, state: ParticleState) -> torch.Tensor:
         """Area (m^2) of free surface each particle stands for: V_i |grad c_i| (the CSF
         surface delta) divided by its flat-lattice sum, so that a flat surface gets
-        exactly its area. Particles with |grad c| h < 0.05 (the interior) get none."""
+        exactly its area. Particles with |grad c| h < 0.05 (the interior) get none.
+        Also sets ``self.normal``, the outward unit normal of surface particles (0 inside)."""
         g = colour_gradient_pairs(state.x, state.m, state.rho, self.rows, self.nb, self.kernel,
                                   self.h, self.domain)
         gn = g.norm(dim=-1)
-        gn = torch.where(gn * self.h > 0.05, gn, torch.zeros_like(gn))
+        surface = gn * self.h > 0.05
+        gn = torch.where(surface, gn, torch.zeros_like(gn))
+        # outward unit normal n = -grad c / |grad c| on surface particles, 0 inside
+        n_out = torch.where(surface.unsqueeze(-1), -g / gn.clamp_min(1e-300).unsqueeze(-1), torch.zeros_like(g))
+        self.normal = embed(self.rows, n_out, state.n)
         V = (state.m / state.rho).index_select(0, self.rows)
         return embed(self.rows, V * gn / self.delta_norm, state.n)
 
