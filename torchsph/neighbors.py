@@ -176,7 +176,10 @@ def brute_force_pairs(x: torch.Tensor, radius: float, domain: Domain):
     ii, jj = torch.meshgrid(torch.arange(N), torch.arange(N), indexing="ij")
     ii, jj = ii.reshape(-1).to(x.device), jj.reshape(-1).to(x.device)
     d = domain.displacement(x[ii], x[jj])
-    keep = ((d * d).sum(-1) < radius * radius) & (ii != jj)
+    r2 = d[:, 0] * d[:, 0]  # summed in the same order as build_table, so ties agree bit for bit
+    for a in range(1, domain.dim):
+        r2 = r2 + d[:, a] * d[:, a]
+    keep = (r2 < radius * radius) & (ii != jj)
     return ii[keep], jj[keep]
 
 
