@@ -1,7 +1,6 @@
 """Malformed case files give one-line errors naming the key, the value and what is allowed."""
 import subprocess
 import sys
-import tomllib
 
 import pytest
 

@@ -186,8 +186,6 @@ TOP = ("scene", "fluid", "thermal", "beam", "numerics", "run")
 
 
 def _set_dotted(raw: dict, dotted: str, value_text: str):
-    if "=" in dotted and not value_text:
-        dotted, value_text = dotted.split("=", 1)
     parts = dotted.strip().split(".")
     if len(parts) != 2 or not all(parts):
         raise CaseError(f"--set {dotted}: expected section.key=value, e.g. run.t_end_s=0.5")

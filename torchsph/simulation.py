@@ -207,10 +207,8 @@ class Simulation:
         if self.thermal is not None:
             P, heat = self.thermal.power(s, s.T, self.t + dt)  # 2 (W per particle; 0 on walls)
             self.dTdt = P / s.m
-            names = list(heat)
-            both = torch.stack([self._heat[k] + heat[k] for k in names]).tolist()
-            for k, v in zip(names, both):
-                self.energy[k] = self.energy.get(k, 0.0) + 0.5 * dt * v
+            for k, v in heat.items():  # accumulated on the device: no sync per step
+                self.energy[k] = self.energy.get(k, 0.0) + 0.5 * dt * (self._heat[k] + v)
             self._heat = heat
             s.T = torch.where(self.thermal.wall_mask, s.T,
                               self.thermal.to_temperature(H_half + 0.5 * dt * self.dTdt))  # 3b
@@ -298,11 +296,12 @@ class Simulation:
         if self.thermal is None:
             return {}
         stored = self.thermal.energy(self.state, self.thermal.prm, 0.0) - self._E0
-        out = {f"{k}_J": v for k, v in self.energy.items()}  # gains > 0, losses < 0
-        flows = sum(self.energy.values())
+        energy = {k: float(v) for k, v in self.energy.items()}
+        out = {f"{k}_J": v for k, v in energy.items()}  # gains > 0, losses < 0
+        flows = sum(energy.values())
         out["stored_J"] = stored
         out["residual_J"] = stored - flows
-        ref = max(sum(abs(v) for v in self.energy.values()), 1e-300)
+        ref = max(sum(abs(v) for v in energy.values()), 1e-300)
         out["residual_rel"] = abs(out["residual_J"]) / ref
         return out
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .fluid import dot, embed, gather_nb, pair_geometry
+from .fluid import embed, gather_nb, pair_geometry
 from .beam import beam_power
 from .kernels import Kernel
 from .neighbors import Domain
@@ -135,15 +135,16 @@ class SurfaceLosses:
         CM = self.molar_mass / (2.0 * math.pi * R_GAS)
         return 0.82 * self.sticking * self.vapour_pressure(T) * torch.sqrt(CM / T)
 
-    def flux(self, T: torch.Tensor, h_T: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Loss fluxes (W/m^2) by kind; ``h_T`` is the specific enthalpy h(T) carried away."""
+    def flux(self, T: torch.Tensor, h_of_T) -> dict[str, torch.Tensor]:
+        """Loss fluxes (W/m^2) by kind; ``h_of_T(T)`` gives the specific enthalpy the vapour
+        carries away (evaluated only with evaporation on)."""
         out = {}
         if self.emissivity > 0:
             out["radiation"] = SIGMA_SB * self.emissivity * (T**4 - self.ambient**4)
         if self.convection > 0:
             out["convection"] = self.convection * (T - self.ambient)
         if self.evaporation:
-            out["evaporation"] = self.evaporation_flux(T) * (self.evaporation_heat + h_T)
+            out["evaporation"] = self.evaporation_flux(T) * (self.evaporation_heat + h_of_T(T))
         return out
 
     @property
@@ -283,7 +284,7 @@ class Conduction:
         if self.losses.active:
             if self._area is None:
                 self._area = self.surface_area(state)
-            fl = self.losses.flux(T, enthalpy(T, self.prm, 0.0))
+            fl = self.losses.flux(T, lambda T_: enthalpy(T_, self.prm, 0.0))
             for name, f in fl.items():
                 Pl = f * self._area
                 totals[name] = -Pl.sum()
