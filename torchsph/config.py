@@ -182,7 +182,17 @@ BEAM = {
     "velocity_m_s": Key("vec", default=None, doc="velocity of the aim point"),
 }
 
-TOP = ("scene", "fluid", "thermal", "beam", "numerics", "run")
+SURFACE = {
+    "tension_N_m": Key("float", default=0.0, ge=0, doc="surface tension alpha0 at reference_temperature_K"),
+    "dtension_dT_N_mK": Key("float", default=0.0, doc="d alpha / dT (negative for steel)"),
+    "reference_temperature_K": Key("float", default=300.0, gt=0, doc="T0 of alpha(T) = alpha0 + alpha' (T - T0)"),
+    "marangoni": Key("bool", default=True, doc="the tangential (Marangoni) force (with dtension_dT_N_mK != 0)"),
+    "recoil": Key("bool", default=False, doc="recoil pressure p_v(T) (2.6); vapour law from [thermal]"),
+    "threshold": Key("float", default=0.05, gt=0, lt=1,
+                     doc="|grad c| h above which a particle is on the free surface"),
+}
+
+TOP = ("scene", "fluid", "thermal", "beam", "surface", "numerics", "run")
 
 
 def _set_dotted(raw: dict, dotted: str, value_text: str):
@@ -288,6 +298,21 @@ def validate(raw: dict) -> dict:
             if not th["liquidus_K"] > th["solidus_K"]:
                 raise CaseError(f"[thermal] liquidus_K = {th['liquidus_K']}: must be > solidus_K = "
                                 f"{th['solidus_K']}")
+    if "surface" in raw:
+        su = cfg["surface"] = validate_section("surface", raw["surface"], SURFACE, dim)
+        if not (spec.has_fluid or cfg.get("thermal", {}).get("phase_change")):
+            raise CaseError(f"[surface] needs fluid particles (scene type {stype!r} has none; "
+                            "set [thermal] phase_change = true to melt it)")
+        for key in ("c0_m_s", "viscosity_Pa_s"):
+            if cfg["fluid"][key] is None:
+                raise CaseError(f"missing required key [fluid] {key} ({FLUID[key].allowed()}) "
+                                "for [surface] forces")
+        if su["recoil"] and "thermal" not in raw:
+            raise CaseError("[surface] recoil = true needs a [thermal] section (the vapour "
+                            "pressure p_v(T) uses boiling_point_K, evaporation_heat_J_kg, molar_mass_kg_mol)")
+        if su["tension_N_m"] == 0 and su["dtension_dT_N_mK"] == 0 and not su["recoil"]:
+            raise CaseError("[surface] declares no force: set tension_N_m > 0, dtension_dT_N_mK != 0 "
+                            "or recoil = true (or remove the section)")
     run = cfg["run"]
     if (run["t_end_s"] is None) == (run["steps"] is None):
         raise CaseError("[run]: give exactly one of t_end_s or steps "

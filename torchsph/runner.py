@@ -15,16 +15,20 @@ from .scenes import SCENES, Scene, build_scene
 from .beam import Beam
 from .thermal import Conduction, SurfaceLosses, ThermalParams
 from .simulation import Simulation
+from .surface import SurfaceForces, SurfaceParams
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
-def make_simulation(cfg: dict, dtype=None, device=None, compile=None) -> tuple[Scene, Simulation]:
-    """Scene and solver for a validated configuration (see :func:`config.load_case`)."""
+def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
+                    scene: Scene | None = None) -> tuple[Scene, Simulation]:
+    """Scene and solver for a validated configuration (see :func:`config.load_case`); a
+    study may pass the ``scene`` already built (and adjusted)."""
     run, nm, fl = cfg["run"], cfg["numerics"], cfg["fluid"]
     dtype = DTYPES[run["dtype"]] if dtype is None else dtype
     device = run["device"] if device is None else device
-    scene = build_scene(cfg, dtype=dtype, device=device)
+    if scene is None:
+        scene = build_scene(cfg, dtype=dtype, device=device)
     dim = cfg["scene"]["dim"]
     h = nm["h_over_dx"] * scene.dx
     kernel = make_kernel(nm["kernel"], dim)
@@ -53,6 +57,14 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None) -> tuple[S
                                molar_mass=th["molar_mass_kg_mol"], ambient_pressure=th["ambient_pressure_Pa"])
         thermal = Conduction(tp, kernel, h, scene.domain, k, compile=compile, beams=beams, dx=scene.dx,
                              losses=losses, h_over_dx=nm["h_over_dx"])
+    surface = None
+    if "surface" in cfg and fluid is not None:
+        su = cfg["surface"]
+        sp = SurfaceParams(tension=su["tension_N_m"], dtension_dT=su["dtension_dT_N_mK"],
+                           reference_temperature=su["reference_temperature_K"],
+                           marangoni=su["marangoni"], recoil=su["recoil"], threshold=su["threshold"])
+        surface = SurfaceForces(sp, kernel, h, scene.domain, nm["h_over_dx"],
+                                vapour_pressure=losses.vapour_pressure if thermal is not None else None)
     # nothing moves in a scene without fluid (rigid solids at rest): no Verlet skin needed
     skin = nm["skin_over_dx"] * scene.dx if fluid is not None else 0.0
     sim = Simulation(scene.state, fluid, scene.domain, skin=skin,
@@ -60,7 +72,8 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None) -> tuple[S
                      max_compression=nm["max_compression"], dx=scene.dx,
                      damping_time=nm["damping_time_s"], thermal=thermal,
                      phase_change=(cfg["thermal"]["solidus_K"], cfg["thermal"]["liquidus_K"],
-                                   cfg["thermal"]["mushy_drag_1_s"]) if phase_change else None)
+                                   cfg["thermal"]["mushy_drag_1_s"]) if phase_change else None,
+                     surface=surface)
     return scene, sim
 
 

@@ -316,6 +316,29 @@ def build_block(cfg, dtype, device) -> Scene:
     return Scene(st, Domain(lo, hi, per), dx, {"counts": counts})
 
 
+def build_drop(cfg, dtype, device) -> Scene:
+    """A free liquid drop centred on the origin: a disc/ball of diameter ``size_m`` or a
+    square/cube of side ``size_m`` cut from the lattice, at rest or with the velocity of
+    the mode-2 oscillation u = U0 (x, -y) / R (2-D) or U0 (x, y, -2 z) / R (3-D)."""
+    sc, fl = cfg["scene"], cfg["fluid"]
+    d, dx, L = sc["dim"], sc["dx_m"], sc["size_m"]
+    n = max(round(L / dx), 1)
+    x = lattice([n] * d, dx, origin=[-n * dx / 2] * d, dtype=dtype, device=device)
+    if sc["shape"] == "ball":
+        x = x[(x * x).sum(-1) < (n * dx / 2) ** 2]
+    R = n * dx / 2
+    v = torch.zeros_like(x)
+    U0 = sc["mode2_velocity_m_s"]
+    if U0:
+        sgn = [1.0, -1.0] if d == 2 else [1.0, 1.0, -2.0]
+        v = U0 / R * x * torch.tensor(sgn, dtype=dtype, device=device)
+    rho0 = fl["rho0_kg_m3"]
+    st = ParticleState.create(x, v, rho0, rho0 * dx**d, Phase.FLUID, T=fl["temperature_K"],
+                              dtype=dtype, device=device)
+    span = 2.0 * L
+    return Scene(st, Domain([-span] * d, [span] * d, [False] * d), dx, {"R": R, "side": n * dx})
+
+
 SCENES: dict[str, SceneSpec] = {
     "taylor_green": SceneSpec(
         {"length_m": Key("float", default=1.0, gt=0, doc="side of the periodic box"),
@@ -360,6 +383,12 @@ SCENES: dict[str, SceneSpec] = {
          "velocity_m_s": Key("vec", default=None, doc="rigid velocity of the block (its body)")},
         (3,), build_block, None, "rigid heat-conducting block, top face at z = 0",
         has_fluid=False, needs_thermal=True),
+    "drop": SceneSpec(
+        {"size_m": Key("float", gt=0, doc="diameter (ball) or side (box)"),
+         "dx_m": Key("float", gt=0, doc="particle spacing"),
+         "shape": Key("str", default="ball", choices=("ball", "box"), doc="disc/ball or square/cube"),
+         "mode2_velocity_m_s": Key("float", default=0.0, doc="initial mode-2 velocity amplitude U0")},
+        (3, 2), build_drop, None, "free liquid drop (surface-tension studies)"),
 }
 
 

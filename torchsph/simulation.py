@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from .fluid import WeaklyCompressibleFluid, neighbour_average
+from .surface import SurfaceForces
 from .thermal import Conduction
 from .neighbors import Domain, VerletList
 from .state import ParticleState, Phase
@@ -33,6 +34,8 @@ LIMIT_FORMULAS = {
     "viscous": "0.125 h^2 rho_min / eta",
     "force": "0.25 sqrt(h / |a|max)",
     "thermal": "0.125 rho c_p h^2 / k",
+    "capillary": "0.25 sqrt(rho_min h^3 / (2 pi alpha_max))",
+    "evaporation": "0.5 m c_p / (A d q_evap/dT), the stiffness of the evaporation loss",
 }
 
 
@@ -51,7 +54,8 @@ class Simulation:
                  skin: float, cfl: float = 0.25, dt_fixed: float | None = None,
                  allow_unstable_dt: bool = False, max_compression: float = 0.3, dx: float = 0.0,
                  damping_time: float = 0.0, thermal: Conduction | None = None,
-                 phase_change: tuple[float, float, float] | None = None):
+                 phase_change: tuple[float, float, float] | None = None,
+                 surface: SurfaceForces | None = None):
         """``fluid`` and ``thermal`` are the physics a scene declares; either may be None
         and then costs nothing (a conduction study has no momentum, a flow no energy)."""
         self.state = state
@@ -59,6 +63,9 @@ class Simulation:
         self.n_fluid = int(self.fluid_mask.sum())
         self.fluid_model = fluid  # active only while there are fluid particles
         self.thermal = thermal
+        self.surface_model = surface  # free-surface forces; active with the fluid
+        if surface is not None and fluid is None:
+            raise ValueError("Simulation: surface forces need the fluid model")
         # (T_S, T_L, C): solids melt above T_L, melt freezes below T_S, mushy drag C
         self.phase_change = phase_change
         if phase_change is not None and (fluid is None or thermal is None):
@@ -88,7 +95,7 @@ class Simulation:
         self.dvdt = torch.zeros_like(state.v)
         self.drhodt = torch.zeros_like(state.rho)
         if self.fluid is not None:
-            self.dvdt = self.fluid.momentum(state, state.v)
+            self.dvdt = self._accelerations(state.v)
             self.drhodt, _ = self.fluid.continuity(state.v, state.m)
         self.dTdt = None  # specific enthalpy rate dh/dt (W/kg) when the scene has heat
         self.energy = {}  # J by kind (beam, conduction from walls, losses), integrated as the step does
@@ -106,13 +113,28 @@ class Simulation:
         """The fluid model while the scene has fluid particles, else None (costs nothing)."""
         return self.fluid_model if self.n_fluid > 0 else None
 
+    @property
+    def surface(self) -> SurfaceForces | None:
+        """The free-surface forces while the scene has fluid particles, else None."""
+        return self.surface_model if self.n_fluid > 0 else None
+
+    def _accelerations(self, v_eval, terms: bool = False):
+        """Fluid (pressure, viscous, body) plus free-surface accelerations at the state."""
+        out = self.fluid.momentum(self.state, v_eval, terms=terms)
+        if self.surface is None:
+            return out
+        if not terms:
+            return out + self.surface.accelerations(self.state)
+        a_s, parts_s = self.surface.accelerations(self.state, terms=True)
+        return out[0] + a_s, {**out[1], **parts_s}
+
     # --- neighbours ---------------------------------------------------------
     def _refresh_pairs(self, force: bool = False):
         if self.nl.update(self.state.x, force=force):
             self._select()
 
     def _select(self):
-        for phys in (self.fluid, self.thermal):
+        for phys in (self.fluid, self.thermal, self.surface):
             if phys is not None:
                 phys.select_pairs(self.state, self.nl.nb, self.nl.mask)
 
@@ -146,9 +168,13 @@ class Simulation:
                 lim["viscous"] = 0.125 * h * h * m["rho_min"] / prm.eta
             if m["amax"] > 0 and math.isfinite(m["amax"]):
                 lim["force"] = 0.25 * math.sqrt(h / m["amax"])
+        if self.surface is not None:
+            lim["capillary"] = self.surface.limit(self.state)
         if self.thermal is not None:
             lim["thermal"] = self.thermal.limit(self.state)
-        return lim
+            if self.thermal.losses.evaporation:
+                lim["evaporation"] = self.thermal.evaporation_limit(self.state)
+        return {k: v for k, v in lim.items() if math.isfinite(v)} or {"none": math.inf}
 
     def choose_dt(self) -> tuple[float, str]:
         lim = self.limits()
@@ -195,11 +221,13 @@ class Simulation:
             s.rho = s.rho + dt * self.drhodt
         step = dt * torch.where(fm, v_half, s.v)  # 1e (rigid bodies move with their velocity)
         if shift is not None:
+            if self.surface is not None:
+                shift = self.surface.project_shift(shift)
             step = step + shift
         s.x = self.domain.wrap(s.x + step)
         self._refresh_pairs()
         if self.fluid is not None:
-            self.dvdt = self.fluid.momentum(s, v_tilde)  # 2
+            self.dvdt = self._accelerations(v_tilde)  # 2
             if self.t + dt < self.damping_time:
                 self.dvdt = self.dvdt - self._damping_rate(self.t + dt) * torch.where(
                     fm, v_tilde, torch.zeros_like(v_tilde))
@@ -277,7 +305,7 @@ class Simulation:
             self.dvdt = torch.zeros_like(s.v)
             self.drhodt = torch.zeros_like(s.rho)
             if self.fluid is not None:  # accelerations and pair geometry of the new fluid set
-                self.dvdt = self.fluid.momentum(s, s.v)
+                self.dvdt = self._accelerations(s.v)
         if self.fluid is None or C <= 0:
             return
         rows = self.fluid_model.rows_f
@@ -329,7 +357,12 @@ class Simulation:
         if not (bad_nan or bad_comp):
             return
         s = self.state
-        _, parts = self.fluid.momentum(s.clone(), v_eval, terms=True)
+        saved = self.state
+        self.state = s.clone()
+        try:
+            _, parts = self._accelerations(v_eval, terms=True)
+        finally:
+            self.state = saved
         if bad_nan:
             score = ~torch.isfinite(self.dvdt).all(-1) | ~torch.isfinite(s.v).all(-1)
             k = int(torch.nonzero(score)[0]) if bool(score.any()) else 0

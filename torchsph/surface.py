@@ -1,0 +1,205 @@
+"""Free-surface forces (SPEC 2.4-2.6, 3.9-3.12): CSF surface tension, Marangoni, recoil.
+
+All three act only on fluid particles on the free surface, through the CSF surface delta
+|grad c| of the colour gradient (3.9) (c = 1 in all material, so a melt/solid contact is
+not a surface):
+
+- surface area a particle stands for, ``A_i = V_i |grad c_i| / D``, where D is the sum of
+  V |grad c| over the layers of a flat lattice surface per unit area (computed once), so
+  that a flat surface gets exactly its area;
+- outward unit normal ``n_i = -grad c_i / |grad c_i|`` (grad c points into the material);
+- curvature ``kappa_i = div n`` (the fix of the garbled 3.10; > 0 on a convex drop), the SPH
+  divergence over surface neighbours with the first-order kernel-gradient correction
+  (``grad n = G B^-1``, B = -sum_j V_j x_ij x_ij dW/dr / r): exact for a linear field even
+  in the one-sided neighbourhood of a surface band, where the plain sum is not;
+- surface tension (2.4/2.5): force ``-alpha(T) kappa n A`` (towards the centre of
+  curvature: the pressure jump alpha kappa), alpha(T) = alpha0 + alpha' (T - T0), kept >= 0;
+- Marangoni (3.11): ``alpha' (I - n n) grad T A`` with the corrected gradient of T;
+- recoil (2.6/3.12): ``-p_v(T) n A`` (pushes the melt in, along -n).
+
+The time-step limit of the capillary waves 0.25 sqrt(rho_min h^3 / (2 pi alpha_max)) (3.16,
+fixed) is :meth:`SurfaceForces.limit`; recoil and Marangoni enter the acceleration limit.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .fluid import dot, embed, gather_nb, pair_geometry
+from .kernels import Kernel
+from .neighbors import Domain
+from .state import ParticleState, Phase
+from .thermal import colour_gradient_pairs, flat_surface_layers
+
+
+@dataclass
+class SurfaceParams:
+    tension: float = 0.0  # alpha0, N/m at T0
+    dtension_dT: float = 0.0  # alpha' = d sigma / dT, N/(m K)
+    reference_temperature: float = 300.0  # T0 of alpha(T), K
+    marangoni: bool = True  # the tangential (I - n n) grad alpha force (when alpha' != 0)
+    recoil: bool = False  # recoil pressure p_v(T) (needs a vapour-pressure law)
+    threshold: float = 0.05  # |grad c| h above which a particle belongs to the surface
+
+
+def corrected_gradient_pairs(x, f, w, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
+    """Corrected SPH gradient of the field ``f`` ((N,) or (N, d)) at ``rows``, over the
+    neighbours with weight ``w`` (N,) (0 = excluded):
+    grad f_i = [sum_j V_j w_j (f_j - f_i) (x) grad_i W_ij] B_i^-1,
+    B_i = sum_j V_j w_j (x_j - x_i) (x) grad_i W_ij, exact for linear f.
+    Returns (rows, d) for a scalar field, (rows, d, d) (grad[a, b] = d f_a / d x_b) for a vector."""
+    dx, r = pair_geometry(x, rows, nb, domain, h)
+    dWr = kernel.dwdr(r, h) / r
+    Vw = gather_nb(m, nb) / gather_nb(rho, nb) * gather_nb(w, nb) * dWr  # (R, k)
+    gW = Vw.unsqueeze(-1) * dx  # V_j w_j grad_i W_ij
+    B = -torch.einsum("rka,rkb->rab", dx, gW)  # (x_j - x_i) (x) grad W
+    d = x.shape[1]
+    eye = torch.eye(d, dtype=x.dtype, device=x.device)
+    tr = torch.diagonal(B, dim1=-2, dim2=-1).sum(-1).clamp_min(1e-30)
+    B = B + (1e-6 * tr).view(-1, 1, 1) * eye  # keeps a degenerate neighbourhood invertible
+    df = gather_nb(f, nb) - f.index_select(0, rows).unsqueeze(1)
+    if f.dim() == 1:
+        G = (df.unsqueeze(-1) * gW).sum(1)  # (R, d)
+        return torch.linalg.solve(B.transpose(-1, -2), G.unsqueeze(-1)).squeeze(-1)
+    G = torch.einsum("rka,rkb->rab", df, gW)  # (R, d, d)
+    # grad = G B^-1  <=>  B^T grad^T = G^T
+    return torch.linalg.solve(B.transpose(-1, -2), G.transpose(-1, -2)).transpose(-1, -2)
+
+
+def smoothed_pairs(x, f, w, m, rho, rows, nb, mask, kernel: Kernel, h: float, domain: Domain):
+    """Kernel (Shepard) average of ``f`` over the neighbours with weight ``w``, self included
+    (``mask`` marks the real neighbours of the padded table)."""
+    dx, r = pair_geometry(x, rows, nb, domain, h)
+    Wk = kernel.w(r, h) * gather_nb(m / rho * w, nb) * mask
+    self_w = (m / rho * w).index_select(0, rows) * kernel.w(torch.zeros((), dtype=x.dtype), h)
+    num = (gather_nb(f, nb) * Wk.unsqueeze(-1)).sum(1) + f.index_select(0, rows) * self_w.unsqueeze(-1)
+    return num / (Wk.sum(1) + self_w).clamp_min(1e-300).unsqueeze(-1)
+
+
+class SurfaceForces:
+    """CSF surface tension, Marangoni and recoil forces on the free-surface fluid particles."""
+
+    def __init__(self, params: SurfaceParams, kernel: Kernel, h: float, domain: Domain,
+                 h_over_dx: float, vapour_pressure=None):
+        if params.recoil and vapour_pressure is None:
+            raise ValueError("SurfaceForces: recoil needs a vapour-pressure law")
+        self.prm = params
+        self.kernel = kernel
+        self.h = h
+        self.domain = domain
+        self.vapour_pressure = vapour_pressure
+        layers = flat_surface_layers(kernel, h_over_dx)
+        self.delta_norm = sum(w for _, w in layers)
+        # |grad c|-weighted mean depth of the surface band below the surface (m): the band's
+        # curvature 1/(R - s) is turned into the surface's 1/R (kappa / (1 + s kappa / (d - 1)))
+        self.band_depth = sum(z * w for z, w in layers) / self.delta_norm * (h / h_over_dx)
+        self.normal = None  # outward normal (N, d) of the last evaluation, 0 off the surface
+        self.kappa = None  # curvature (N,) of the last evaluation, 0 off the surface
+        self.n_surface = 0
+        self.smooth_normals = True
+
+    @property
+    def marangoni_on(self) -> bool:
+        return self.prm.marangoni and self.prm.dtension_dT != 0.0
+
+    def select_pairs(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor):
+        fluid = state.phase == Phase.FLUID
+        self.rows_f = torch.nonzero(fluid).squeeze(1)
+        self.nb_f = nb.index_select(0, self.rows_f)
+        self.mask_f = mask.index_select(0, self.rows_f)
+        self.fluid = fluid
+
+    def tension(self, T: torch.Tensor) -> torch.Tensor:
+        prm = self.prm
+        return (prm.tension + prm.dtension_dT * (T - prm.reference_temperature)).clamp_min(0.0)
+
+    def accelerations(self, state: ParticleState, terms: bool = False):
+        """Accelerations (N, d) from the surface forces at ``state``; with ``terms`` also a
+        dict by force. Sets ``normal``, ``kappa`` and ``n_surface``."""
+        prm, n, d = self.prm, state.n, state.dim
+        x, m, rho = state.x, state.m, state.rho
+        zero = torch.zeros_like(x)
+        g = colour_gradient_pairs(x, m, rho, self.rows_f, self.nb_f, self.kernel, self.h, self.domain)
+        gn = g.norm(dim=-1)
+        on = gn * self.h > prm.threshold
+        sel = torch.nonzero(on).squeeze(1)
+        rows = self.rows_f.index_select(0, sel)
+        self.n_surface = rows.numel()
+        self.normal = zero.clone()
+        self.kappa = torch.zeros_like(rho)
+        parts = {}
+        if rows.numel() == 0:
+            return (zero, {"surface_tension": zero}) if terms else zero
+        nb = self.nb_f.index_select(0, sel)
+        gs, gns = g.index_select(0, sel), gn.index_select(0, sel)
+        n_out = -gs / gns.unsqueeze(-1)
+        self.normal = self.normal.index_copy(0, rows, n_out)
+        flag = torch.zeros_like(rho).index_fill(0, rows, 1.0)  # surface fluid particles
+        # force per unit mass = (force per area) x A_i / m_i = (force per area) |grad c| / (rho D)
+        per_area = (gns / (rho.index_select(0, rows) * self.delta_norm)).unsqueeze(-1)
+        a = torch.zeros_like(n_out)
+        if prm.tension > 0 or prm.dtension_dT != 0.0:
+            if self.smooth_normals:
+                nsm = smoothed_pairs(x, self.normal, flag, m, rho, rows, nb,
+                                     self.mask_f.index_select(0, sel).to(rho.dtype), self.kernel, self.h, self.domain)
+                nsm = nsm / nsm.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+                nfield = self.normal.index_copy(0, rows, nsm)
+            else:
+                nfield = self.normal
+            gradn = corrected_gradient_pairs(x, nfield, flag, m, rho, rows, nb, self.kernel,
+                                             self.h, self.domain)
+            kappa = torch.diagonal(gradn, dim1=-2, dim2=-1).sum(-1)
+            kappa = kappa / (1.0 + self.band_depth * kappa / (d - 1)).clamp_min(0.5)
+            self.kappa = self.kappa.index_copy(0, rows, kappa)
+            alpha = self.tension(state.T.index_select(0, rows))
+            parts["surface_tension"] = -(alpha * kappa).unsqueeze(-1) * n_out * per_area
+            a = a + parts["surface_tension"]
+        if self.marangoni_on:
+            material = (state.phase != Phase.WALL).to(rho.dtype)
+            gT = corrected_gradient_pairs(x, state.T, material, m, rho, rows, nb, self.kernel,
+                                          self.h, self.domain)
+            gT_t = gT - dot(gT, n_out).unsqueeze(-1) * n_out
+            T = state.T.index_select(0, rows)
+            live = (self.tension(T) > 0).to(rho.dtype).unsqueeze(-1)  # alpha clamped at 0: no gradient
+            parts["marangoni"] = prm.dtension_dT * gT_t * per_area * live
+            a = a + parts["marangoni"]
+        if prm.recoil:
+            pv = self.vapour_pressure(state.T.index_select(0, rows))
+            parts["recoil"] = -pv.unsqueeze(-1) * n_out * per_area
+            a = a + parts["recoil"]
+        out = embed(rows, a, n)
+        if not terms:
+            return out
+        return out, {k: embed(rows, v, n) for k, v in parts.items()}
+
+    def surface_area(self, state: ParticleState) -> torch.Tensor:
+        """Area (m^2) each fluid surface particle stands for, from the last evaluation's rows."""
+        g = colour_gradient_pairs(state.x, state.m, state.rho, self.rows_f, self.nb_f, self.kernel,
+                                  self.h, self.domain)
+        gn = g.norm(dim=-1)
+        gn = torch.where(gn * self.h > self.prm.threshold, gn, torch.zeros_like(gn))
+        V = (state.m / state.rho).index_select(0, self.rows_f)
+        return embed(self.rows_f, V * gn / self.delta_norm, state.n)
+
+    def limit(self, state: ParticleState) -> float:
+        """Capillary time-step limit 0.25 sqrt(rho_min h^3 / (2 pi alpha_max)) (3.16, fixed)."""
+        if self.rows_f.numel() == 0:
+            return math.inf
+        T = state.T.index_select(0, self.rows_f)
+        amax = float(self.tension(T).max())
+        if amax <= 0:
+            return math.inf
+        rho_min = float(state.rho.index_select(0, self.rows_f).min())
+        return 0.25 * math.sqrt(rho_min * self.h**3 / (2.0 * math.pi * amax))
+
+    def project_shift(self, shift: torch.Tensor) -> torch.Tensor:
+        """Particle shifting on the free surface only along it: (I - n n) dr (Lind et al. 2012),
+        so that shifting does not push surface particles out of the fluid."""
+        if self.normal is None:
+            return shift
+        return shift - dot(shift, self.normal).unsqueeze(-1) * self.normal
+
+
+__all__ = ["SurfaceParams", "SurfaceForces", "corrected_gradient_pairs"]
