@@ -47,9 +47,9 @@ BAD = {
 
 def test_good_cases_load():
     for case in sorted(p for p in CASES.iterdir() if (p / "case.toml").exists()):
-        path, cfg = load_case(case)
+        _, cfg = load_case(case)
         assert cfg["scene"]["type"] in {"taylor_green", "poiseuille", "hydrostatic_tank", "conduction_1d",
-                                        "gaussian_bump", "block"}
+                                        "gaussian_bump", "block", "drop"}
 
 
 def test_overrides_are_validated():

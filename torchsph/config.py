@@ -204,6 +204,10 @@ def _set_dotted(raw: dict, dotted: str, value_text: str):
     except tomllib.TOMLDecodeError:
         value = value_text
     raw.setdefault(parts[0], {})
+    if isinstance(raw[parts[0]], list) and all(isinstance(t, dict) for t in raw[parts[0]]):
+        for t in raw[parts[0]]:  # an array of tables ([[beam]]): the key is set in every one
+            t[parts[1]] = value
+        return
     if not isinstance(raw[parts[0]], dict):
         raise CaseError(f"--set {dotted}: [{parts[0]}] is not a table")
     raw[parts[0]][parts[1]] = value
