@@ -52,6 +52,9 @@ def run_variant(case, key, t_end, extra=()):
             peak["T"], peak["t"] = T, sim.t
         if sim.step % 20 == 0:
             peak["depth"] = max(peak["depth"], keyhole(sim))
+        if sim.step % 1000 == 0:
+            print(f"  ({key}) t = {sim.t:.4f} s, step {sim.step}, T max {T:.0f} K, peak {peak['T']:.0f} K, "
+                  f"fluid {sim.n_fluid}", file=sys.stderr, flush=True)
 
     t0 = time.perf_counter()
     run_steps(sim, t_end=t_end, callback=cb)

@@ -64,7 +64,8 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
                            reference_temperature=su["reference_temperature_K"],
                            marangoni=su["marangoni"], recoil=su["recoil"], threshold=su["threshold"])
         surface = SurfaceForces(sp, kernel, h, scene.domain, nm["h_over_dx"],
-                                vapour_pressure=losses.vapour_pressure if thermal is not None else None)
+                                vapour_pressure=losses.vapour_pressure if thermal is not None else None,
+                                compile=compile)
     # nothing moves in a scene without fluid (rigid solids at rest): no Verlet skin needed
     skin = nm["skin_over_dx"] * scene.dx if fluid is not None else 0.0
     sim = Simulation(scene.state, fluid, scene.domain, skin=skin,

@@ -44,28 +44,42 @@ class SurfaceParams:
     threshold: float = 0.05  # |grad c| h above which a particle belongs to the surface
 
 
+def gradient_moments(x, f, w, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
+    """Pair sums of the corrected gradient (see :func:`corrected_gradient_pairs`): the
+    moment matrix B_i = sum_j V_j w_j (x_j - x_i) (x) grad_i W_ij (R, d, d) and
+    G_i = sum_j V_j w_j (f_j - f_i) (x) grad_i W_ij ((R, d) or (R, d, d))."""
+    dx, _ = pair_geometry(x, rows, nb, domain, h)
+    r = torch.sqrt(dot(dx, dx)).clamp_min(1e-12 * h)
+    dWr = kernel.dwdr(r, h) / r
+    Vw = gather_nb(m, nb) / gather_nb(rho, nb) * gather_nb(w, nb) * dWr  # (R, k)
+    gW = Vw.unsqueeze(-1) * dx  # V_j w_j grad_i W_ij
+    B = -(dx.unsqueeze(-1) * gW.unsqueeze(-2)).sum(1)  # (x_j - x_i) (x) grad W
+    df = gather_nb(f, nb) - f.index_select(0, rows).unsqueeze(1)
+    if f.dim() == 1:
+        return B, (df.unsqueeze(-1) * gW).sum(1)
+    return B, (df.unsqueeze(-1) * gW.unsqueeze(-2)).sum(1)
+
+
+def solve_gradient(B: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    """grad = G B^-1 (batched), with B regularised by 1e-6 tr(B) I so that a degenerate
+    neighbourhood stays invertible."""
+    d = B.shape[-1]
+    eye = torch.eye(d, dtype=B.dtype, device=B.device)
+    tr = torch.diagonal(B, dim1=-2, dim2=-1).sum(-1).clamp_min(1e-30)
+    Bt = (B + (1e-6 * tr).view(-1, 1, 1) * eye).transpose(-1, -2)
+    if G.dim() == 2:
+        return torch.linalg.solve(Bt, G.unsqueeze(-1)).squeeze(-1)
+    # grad = G B^-1  <=>  B^T grad^T = G^T
+    return torch.linalg.solve(Bt, G.transpose(-1, -2)).transpose(-1, -2)
+
+
 def corrected_gradient_pairs(x, f, w, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
     """Corrected SPH gradient of the field ``f`` ((N,) or (N, d)) at ``rows``, over the
     neighbours with weight ``w`` (N,) (0 = excluded):
     grad f_i = [sum_j V_j w_j (f_j - f_i) (x) grad_i W_ij] B_i^-1,
     B_i = sum_j V_j w_j (x_j - x_i) (x) grad_i W_ij, exact for linear f.
     Returns (rows, d) for a scalar field, (rows, d, d) (grad[a, b] = d f_a / d x_b) for a vector."""
-    dx, r = pair_geometry(x, rows, nb, domain, h)
-    dWr = kernel.dwdr(r, h) / r
-    Vw = gather_nb(m, nb) / gather_nb(rho, nb) * gather_nb(w, nb) * dWr  # (R, k)
-    gW = Vw.unsqueeze(-1) * dx  # V_j w_j grad_i W_ij
-    B = -torch.einsum("rka,rkb->rab", dx, gW)  # (x_j - x_i) (x) grad W
-    d = x.shape[1]
-    eye = torch.eye(d, dtype=x.dtype, device=x.device)
-    tr = torch.diagonal(B, dim1=-2, dim2=-1).sum(-1).clamp_min(1e-30)
-    B = B + (1e-6 * tr).view(-1, 1, 1) * eye  # keeps a degenerate neighbourhood invertible
-    df = gather_nb(f, nb) - f.index_select(0, rows).unsqueeze(1)
-    if f.dim() == 1:
-        G = (df.unsqueeze(-1) * gW).sum(1)  # (R, d)
-        return torch.linalg.solve(B.transpose(-1, -2), G.unsqueeze(-1)).squeeze(-1)
-    G = torch.einsum("rka,rkb->rab", df, gW)  # (R, d, d)
-    # grad = G B^-1  <=>  B^T grad^T = G^T
-    return torch.linalg.solve(B.transpose(-1, -2), G.transpose(-1, -2)).transpose(-1, -2)
+    return solve_gradient(*gradient_moments(x, f, w, m, rho, rows, nb, kernel, h, domain))
 
 
 def smoothed_pairs(x, f, w, m, rho, rows, nb, mask, kernel: Kernel, h: float, domain: Domain):
@@ -82,7 +96,7 @@ class SurfaceForces:
     """CSF surface tension, Marangoni and recoil forces on the free-surface fluid particles."""
 
     def __init__(self, params: SurfaceParams, kernel: Kernel, h: float, domain: Domain,
-                 h_over_dx: float, vapour_pressure=None):
+                 h_over_dx: float, vapour_pressure=None, compile: bool = False):
         if params.recoil and vapour_pressure is None:
             raise ValueError("SurfaceForces: recoil needs a vapour-pressure law")
         self.prm = params
@@ -99,6 +113,10 @@ class SurfaceForces:
         self.kappa = None  # curvature (N,) of the last evaluation, 0 off the surface
         self.n_surface = 0
         self.smooth_normals = True
+        self._fns = {"colour": colour_gradient_pairs, "moments": gradient_moments,
+                     "smooth": smoothed_pairs}
+        if compile:  # the pair sums fuse; the batched d x d solves stay eager
+            self._fns = {k: torch.compile(f, dynamic=True) for k, f in self._fns.items()}
 
     @property
     def marangoni_on(self) -> bool:
@@ -121,7 +139,7 @@ class SurfaceForces:
         prm, n, d = self.prm, state.n, state.dim
         x, m, rho = state.x, state.m, state.rho
         zero = torch.zeros_like(x)
-        g = colour_gradient_pairs(x, m, rho, self.rows_f, self.nb_f, self.kernel, self.h, self.domain)
+        g = self._fns["colour"](x, m, rho, self.rows_f, self.nb_f, self.kernel, self.h, self.domain)
         gn = g.norm(dim=-1)
         on = gn * self.h > prm.threshold
         sel = torch.nonzero(on).squeeze(1)
@@ -142,14 +160,14 @@ class SurfaceForces:
         a = torch.zeros_like(n_out)
         if prm.tension > 0 or prm.dtension_dT != 0.0:
             if self.smooth_normals:
-                nsm = smoothed_pairs(x, self.normal, flag, m, rho, rows, nb,
+                nsm = self._fns["smooth"](x, self.normal, flag, m, rho, rows, nb,
                                      self.mask_f.index_select(0, sel).to(rho.dtype), self.kernel, self.h, self.domain)
                 nsm = nsm / nsm.norm(dim=-1, keepdim=True).clamp_min(1e-30)
                 nfield = self.normal.index_copy(0, rows, nsm)
             else:
                 nfield = self.normal
-            gradn = corrected_gradient_pairs(x, nfield, flag, m, rho, rows, nb, self.kernel,
-                                             self.h, self.domain)
+            gradn = solve_gradient(*self._fns["moments"](x, nfield, flag, m, rho, rows, nb, self.kernel,
+                                                         self.h, self.domain))
             kappa = torch.diagonal(gradn, dim1=-2, dim2=-1).sum(-1)
             kappa = kappa / (1.0 + self.band_depth * kappa / (d - 1)).clamp_min(0.5)
             self.kappa = self.kappa.index_copy(0, rows, kappa)
@@ -158,8 +176,8 @@ class SurfaceForces:
             a = a + parts["surface_tension"]
         if self.marangoni_on:
             material = (state.phase != Phase.WALL).to(rho.dtype)
-            gT = corrected_gradient_pairs(x, state.T, material, m, rho, rows, nb, self.kernel,
-                                          self.h, self.domain)
+            gT = solve_gradient(*self._fns["moments"](x, state.T, material, m, rho, rows, nb,
+                                                      self.kernel, self.h, self.domain))
             gT_t = gT - dot(gT, n_out).unsqueeze(-1) * n_out
             T = state.T.index_select(0, rows)
             live = (self.tension(T) > 0).to(rho.dtype).unsqueeze(-1)  # alpha clamped at 0: no gradient
