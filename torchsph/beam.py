@@ -72,8 +72,14 @@ def beam_power(x: torch.Tensor, material: torch.Tensor, beam: Beam, t: float, dx
     out = torch.zeros(x.shape[0], dtype=dt, device=dev)
     if idx.numel() == 0:
         return out
-    ia = torch.floor(a[idx] / dx).long()
-    ib = torch.floor(b[idx] / dx).long()
+    # bins of side dx centred on the candidate nearest the axis: on a lattice seen along an
+    # axis every column then sits at a bin centre (bins with edges on the columns split
+    # them by round-off, leaving empty bins whose power nobody absorbed: -51 % was seen)
+    k0 = int(torch.argmin(rho2[idx]))
+    a0, b0 = a[idx][k0], b[idx][k0]
+    ia = torch.floor((a[idx] - a0) / dx + 0.5).long()
+    ib = torch.floor((b[idx] - b0) / dx + 0.5).long()
+    ia_c, ib_c = ia, ib
     ia = ia - ia.min()
     ib = ib - ib.min()
     key = ia * (int(ib.max()) + 1) + ib
@@ -88,8 +94,8 @@ def beam_power(x: torch.Tensor, material: torch.Tensor, beam: Beam, t: float, dx
     lit = idx == first[bin_of]
     # midpoint rule: the intensity at the bin centre times the bin area (sampling at the
     # hit particle instead is biased where the lattice aliases with the bins: +3.4 % seen)
-    ac = (torch.floor(a[idx] / dx) + 0.5) * dx
-    bc = (torch.floor(b[idx] / dx) + 0.5) * dx
+    ac = a0 + ia_c.to(dt) * dx
+    bc = b0 + ib_c.to(dt) * dx
     q = beam.efficiency * 2.0 * beam.power / (math.pi * beam.radius**2) * torch.exp(
         -2.0 * (ac * ac + bc * bc) / beam.radius**2)
     out[idx] = torch.where(lit, q * dx * dx, torch.zeros_like(q))
