@@ -215,3 +215,19 @@ def test_thermocapillary_return_flow_birikh():
     print(f"fit u/U = {a:.3f} z/d + {b:.3f} (z/d)^2 (Birikh: -2, 3); surface speed {a + b:.3f} U")
     assert abs(b / -a - 1.5) < 0.075
     assert abs(a + b - 1.0) < 0.12
+
+
+def test_blow_up_above_the_capillary_limit_is_diagnosed():
+    """A drop stepped at 8x the acoustic limit (2.3x the capillary one) blows up within a
+    few steps; the one-line diagnosis names the particle, the surface-tension term and the
+    limits the step exceeded (scripts/stress.py: stable up to 4x, i.e. 1.1x capillary)."""
+    _, cfg = load_case(CASES / "oscillating_drop_2d", ["scene.dx_m=1e-4"])
+    _, sim = make_simulation(cfg)
+    dt = 8 * sim.limits()["acoustic"]
+    with pytest.raises(SimulationError) as err:
+        for _ in range(50):
+            sim.advance(dt, "fixed")
+    msg = str(err.value)
+    print(msg)
+    for part in ("blow-up at step", "particle id", "largest term there: surface_tension", "capillary x"):
+        assert part in msg

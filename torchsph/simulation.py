@@ -378,7 +378,8 @@ class Simulation:
         bname = min(lim, key=lim.get)
         lim_txt = f"binding dt limit before the step: {bname} = {lim[bname]:.3g} s"
         if dt > lim[bname]:
-            lim_txt += f" (dt was {dt / lim[bname]:.3g} x that limit)"
+            over = sorted(((dt / v, k) for k, v in lim.items() if dt > v), reverse=True)
+            lim_txt += "; dt exceeded " + ", ".join(f"{k} x{f:.3g}" for f, k in over)
         pos = ", ".join(f"{c:.4g}" for c in s.x[k].tolist())
         raise SimulationError(
             f"blow-up at step {self.step}, t = {self.t:.6g} s: {what} at particle id "
