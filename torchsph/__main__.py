@@ -5,6 +5,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from .checkpoint import CheckpointError
 from .config import CaseError, load_case
 from .simulation import SimulationError
 
@@ -24,6 +25,10 @@ def parse_args(argv=None):
     ap.add_argument("--compile", action="store_true",
                     help="fuse the pair loops with torch.compile (same as --set numerics.compile=true)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    ap.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
+                    help="write OUT/checkpoint.pt every N steps (always at the end and on Ctrl-C)")
+    ap.add_argument("--restart", type=Path, default=None, metavar="CHECKPOINT",
+                    help="continue a run from its checkpoint (same case; [run] may differ)")
     return ap.parse_args(argv)
 
 
@@ -38,16 +43,19 @@ def main(argv=None) -> int:
         path, cfg = load_case(args.case, overrides)
         out = args.out if args.out is not None else path.parent / "output"
         from .runner import run_case
+        if args.checkpoint_every is not None and args.checkpoint_every <= 0:
+            raise CaseError(f"--checkpoint-every {args.checkpoint_every}: must be > 0")
         s = run_case(cfg, path, out, t_end=args.t_end, steps=args.steps, device=args.device,
-                     dtype=args.dtype, progress=not args.quiet)
-    except CaseError as e:
+                     dtype=args.dtype, progress=not args.quiet, checkpoint_every=args.checkpoint_every,
+                     restart=args.restart)
+    except (CaseError, CheckpointError) as e:
         print(f"torchsph: error: {e}", file=sys.stderr)
         return 2
     except SimulationError as e:
         print(f"torchsph: stopped: {e}", file=sys.stderr)
         return 3
-    except KeyboardInterrupt:
-        print("torchsph: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        print(f"torchsph: {e or 'interrupted'}", file=sys.stderr)
         return 130
     print(f"torchsph: {s['steps']} steps to t = {s['t_final_s']:.6g} s, {s['n_particles']} particles, "
           f"{s['wall_s']:.2f} s wall, {s['particle_steps_per_s']:.3g} particle-steps/s, "

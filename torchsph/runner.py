@@ -114,8 +114,18 @@ def run_steps(sim: Simulation, t_end: float | None = None, steps: int | None = N
 
 
 def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, device=None,
-             dtype=None, progress=True) -> dict:
-    """Run a case with snapshots every output interval; returns the summary dict."""
+             dtype=None, progress=True, checkpoint_every: int | None = None,
+             restart: Path | None = None) -> dict:
+    """Run a case with snapshots every output interval; returns the summary dict.
+
+    Checkpoints (``out_dir/checkpoint.pt``, atomic) are written every ``checkpoint_every``
+    steps, at the end, and when the run is interrupted (SIGINT/Ctrl-C: the step in
+    progress is finished first, then the checkpoint is written and KeyboardInterrupt
+    raised). ``restart`` continues from a checkpoint of the same case; ``steps`` then
+    counts the steps still to run, ``t_end`` stays the end time."""
+    import signal
+
+    from . import checkpoint as ckpt
     from tqdm import tqdm
 
     run = cfg["run"]
@@ -139,6 +149,13 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     every_steps = max(steps // 10, 1) if (steps is not None and run["output_interval_s"] is None) else None
     snaps: list[tuple[float, str]] = []
     fdt = sim.state.x.detach().cpu().numpy().dtype
+    chash = ckpt.config_hash(cfg)
+    ck_path = out_dir / "checkpoint.pt"
+    resumed = None
+    if restart is not None:
+        extra = ckpt.restore(sim, ckpt.load(restart), chash, str(restart))
+        snaps = [tuple(x) for x in extra.get("snaps", [])]
+        resumed = extra
 
     def snapshot():
         name = f"snap_{len(snaps):05d}.h5"
@@ -146,9 +163,19 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         snaps.append((sim.t, name))
         sio.write_xdmf(out_dir / "particles.xdmf", snaps, sim.state.n, fdt)
 
-    snapshot()
-    next_out = [interval]
+    if resumed is None:
+        snapshot()
+        next_out = [interval]
+    else:
+        next_out = [resumed.get("next_out", interval)]
     stats = RunStats()
+    interrupted = [False]
+
+    def on_sigint(signum, frame):  # finish the step in progress, then checkpoint and stop
+        interrupted[0] = True
+
+    def write_checkpoint():
+        ckpt.save(sim, ck_path, chash, {"snaps": snaps, "next_out": next_out[0]})
     n = sim.state.n
     bar = tqdm(total=steps if steps is not None else t_end, disable=not progress,
                unit="step" if steps is not None else "s", dynamic_ncols=True, mininterval=0.5,
@@ -166,11 +193,19 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         if due:
             snapshot()
             next_out[0] += interval
+        if checkpoint_every and sim.step % checkpoint_every == 0:
+            write_checkpoint()
+        if interrupted[0]:
+            write_checkpoint()
+            raise KeyboardInterrupt(f"interrupted at step {sim.step}; checkpoint {ck_path}")
 
+    old_handler = signal.signal(signal.SIGINT, on_sigint)
     try:
         run_steps(sim, t_end=t_end, steps=steps, callback=callback, stats=stats)
     finally:
+        signal.signal(signal.SIGINT, old_handler)
         bar.close()
+    write_checkpoint()
     wall = time.perf_counter() - t0
     if snaps[-1][0] != sim.t:
         snapshot()

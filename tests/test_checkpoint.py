@@ -1,0 +1,101 @@
+"""Checkpoints: a restart continues a run bit for bit; Ctrl-C leaves a loadable checkpoint;
+a run killed while writing one leaves the previous checkpoint intact."""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+from conftest import CASES, ROOT
+
+from torchsph import checkpoint as ckpt
+from torchsph.config import load_case
+from torchsph.runner import run_case
+
+
+def final_state(path):
+    return ckpt.load(path)["state"]
+
+
+@pytest.mark.parametrize("case,over,K", [
+    ("poiseuille_2d", ["scene.n_height=20"], 60),             # fluid + walls, Verlet rebuilds
+    ("oscillating_drop_2d", ["scene.dx_m=1e-4"], 40),          # free surface forces + shifting off
+    ("beam_plate", ["run.t_end_s=0.02"], 30),                  # beam, latent heat, conduction
+])
+def test_restart_is_bit_for_bit(tmp_path, case, over, K):
+    """float64: K steps == K/2 steps + checkpoint + restart + K/2 steps, every field equal."""
+    _, cfg = load_case(CASES / case, over)
+    run_case(cfg, CASES / case, tmp_path / "full", steps=K, progress=False)
+    _, cfg = load_case(CASES / case, over)
+    run_case(cfg, CASES / case, tmp_path / "half", steps=K // 2, progress=False)
+    _, cfg = load_case(CASES / case, over)
+    s = run_case(cfg, CASES / case, tmp_path / "half", steps=K - K // 2, progress=False,
+                 restart=tmp_path / "half" / "checkpoint.pt")
+    assert s["steps"] == K
+    a, b = final_state(tmp_path / "full" / "checkpoint.pt"), final_state(tmp_path / "half" / "checkpoint.pt")
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    full, half = ckpt.load(tmp_path / "full" / "checkpoint.pt"), ckpt.load(tmp_path / "half" / "checkpoint.pt")
+    assert full["t"] == half["t"] and full["step"] == half["step"]
+
+
+def test_restart_refuses_a_different_case(tmp_path):
+    _, cfg = load_case(CASES / "poiseuille_2d", ["scene.n_height=20"])
+    run_case(cfg, CASES / "poiseuille_2d", tmp_path, steps=3, progress=False)
+    _, cfg = load_case(CASES / "poiseuille_2d", ["scene.n_height=20", "fluid.viscosity_Pa_s=0.002"])
+    with pytest.raises(ckpt.CheckpointError, match="different case"):
+        run_case(cfg, CASES / "poiseuille_2d", tmp_path, steps=3, progress=False,
+                 restart=tmp_path / "checkpoint.pt")
+
+
+def _start(args, env=None):
+    return subprocess.Popen([sys.executable, "-m", "torchsph", *args], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for(path, proc, timeout=120):
+    t0 = time.time()
+    while not path.exists():
+        if proc.poll() is not None or time.time() - t0 > timeout:
+            raise AssertionError(f"{path} never appeared: {proc.communicate()}")
+        time.sleep(0.1)
+
+
+def test_sigint_leaves_a_loadable_checkpoint(tmp_path):
+    p = _start([str(CASES / "poiseuille_2d"), "--out", str(tmp_path), "--steps", "1000000", "--quiet",
+                "--set", "scene.n_height=20"])
+    _wait_for(tmp_path / "snap_00000.h5", p)
+    time.sleep(2.0)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    assert "checkpoint" in err
+    d = ckpt.load(tmp_path / "checkpoint.pt")
+    assert d["step"] > 0
+    # and the run continues from it
+    r = subprocess.run([sys.executable, "-m", "torchsph", str(CASES / "poiseuille_2d"), "--out", str(tmp_path),
+                        "--steps", "5", "--quiet", "--set", "scene.n_height=20",
+                        "--restart", str(tmp_path / "checkpoint.pt")],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300, check=False)
+    assert r.returncode == 0, r.stderr
+    assert ckpt.load(tmp_path / "checkpoint.pt")["step"] == d["step"] + 5
+
+
+def test_sigkill_while_writing_keeps_the_previous_checkpoint(tmp_path):
+    base = [str(CASES / "poiseuille_2d"), "--out", str(tmp_path), "--quiet", "--set", "scene.n_height=20"]
+    r = subprocess.run([sys.executable, "-m", "torchsph", *base, "--steps", "4"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300, check=False)
+    assert r.returncode == 0, r.stderr
+    before = ckpt.load(tmp_path / "checkpoint.pt")
+    env = dict(os.environ, TORCHSPH_CHECKPOINT_TEST_DELAY_S="60")
+    p = _start([*base, "--steps", "100", "--checkpoint-every", "2", "--restart",
+                str(tmp_path / "checkpoint.pt")], env=env)
+    _wait_for(tmp_path / "checkpoint.pt.tmp", p)  # the next checkpoint is being written
+    p.send_signal(signal.SIGKILL)
+    p.communicate(timeout=60)
+    after = ckpt.load(tmp_path / "checkpoint.pt")
+    assert after["step"] == before["step"] == 4
+    for k in before["state"]:
+        assert torch.equal(before["state"][k], after["state"][k])
