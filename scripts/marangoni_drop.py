@@ -15,6 +15,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import torch  # noqa: E402
+
 from torchsph.config import load_case  # noqa: E402
 from torchsph.runner import make_simulation, run_steps  # noqa: E402
 
@@ -43,11 +45,12 @@ def main():
               f"{float(s.T.max()):.0f} |", flush=True)
     s = sim.state
     c = s.x.mean(0)
-    line = ((s.x[:, 1] - c[1]).abs() < 0.5 * dx) & ((s.x[:, 2] - c[2]).abs() < 0.75 * dx)
-    order = s.x[line, 0].argsort()
-    print("\nprofile at t = %.4f s: x (mm), u_z (mm/s)" % sim.t)
-    for xi, ui in zip((s.x[line, 0][order] - c[0]).tolist(), s.v[line, 2][order].tolist()):
-        print(f"{xi * 1e3:8.3f} {ui * 1e3:9.3f}")
+    line = ((s.x[:, 1] - c[1]).abs() < dx) & ((s.x[:, 2] - c[2]).abs() < dx)
+    xb = torch.round((s.x[line, 0] - c[0]) / dx)
+    print("\nprofile at t = %.4f s through the centre (|y|, |z| < dx, binned by dx): x (mm), u_z (mm/s)" % sim.t)
+    for b in torch.unique(xb).tolist():
+        sel = xb == b
+        print(f"{b * dx * 1e3:8.3f} {float(s.v[line][sel, 2].mean()) * 1e3:9.3f}")
     print(f"\n{sim.step} steps, {s.n} particles, {time.perf_counter() - t0:.0f} s wall")
 
 
