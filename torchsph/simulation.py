@@ -36,6 +36,7 @@ LIMIT_FORMULAS = {
     "thermal": "0.125 rho c_p h^2 / k",
     "capillary": "0.25 sqrt(rho_min h^3 / (2 pi alpha_max))",
     "evaporation": "0.5 m c_p / (A d q_evap/dT), the stiffness of the evaporation loss",
+    "heating": "0.1 c_p T / |dh/dt| (with evaporation)",
 }
 
 
@@ -174,7 +175,18 @@ class Simulation:
             lim["thermal"] = self.thermal.limit(self.state)
             if self.thermal.losses.evaporation:
                 lim["evaporation"] = self.thermal.evaporation_limit(self.state)
+                lim["heating"] = self._heating_limit()
         return {k: v for k, v in lim.items() if math.isfinite(v)} or {"none": math.inf}
+
+    def _heating_limit(self) -> float:
+        """0.1 c_p T / |dh/dt| over the non-wall particles: at most a 10 % temperature change
+        per step. With evaporation on, a step that heats a surface particle far past T_v in
+        one go meets a loss that is exponentially stiff there (a 1 200 W beam on the cube
+        produced a non-finite temperature on the second step at the thermal limit)."""
+        th = self.thermal
+        rate = torch.where(th.wall_mask, torch.zeros_like(self.dTdt), self.dTdt.abs())
+        r = float((rate / (th.prm.specific_heat * self.state.T.clamp_min(1.0))).max())
+        return 0.1 / r if r > 0 else math.inf
 
     def choose_dt(self) -> tuple[float, str]:
         lim = self.limits()
