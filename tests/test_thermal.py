@@ -241,3 +241,21 @@ def test_rosenthal_isotherm():
     for ref in ("gaussian", "point"):
         Lr, Wr = r[ref]
         assert abs(L / Lr - 1) < 0.05 and abs(W / Wr - 1) < 0.05, (ref, L, W, Lr, Wr)
+
+
+def test_thermal_blow_up_is_diagnosed():
+    """Conduction stepped at 10x the thermal limit grows until the temperature is not finite;
+    the run stops with one line naming the particle, the largest heat term and the limits
+    the step exceeded."""
+    from torchsph.simulation import SimulationError
+
+    _, cfg = load_case(CASES / "conduction_1d", ["numerics.allow_unstable_dt=true"])
+    _, sim = make_simulation(cfg)
+    dt = 10 * sim.limits()["thermal"]
+    with pytest.raises(SimulationError) as err:
+        for _ in range(5000):
+            sim.advance(dt, "fixed")
+    msg = str(err.value)
+    print(msg)
+    for part in ("non-finite temperature", "particle id", "largest term there: conduction", "thermal x10"):
+        assert part in msg

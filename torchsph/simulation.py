@@ -213,6 +213,7 @@ class Simulation:
     def advance(self, dt: float | None = None, limit: str = "given") -> StepInfo:
         """One kick-drift-kick step; dt defaults to the automatic (or fixed) step."""
         self._pre_limits = self.limits()  # of the last good state, for a diagnosis
+        self._T_prev = self.state.T
         if dt is None:
             dt, limit = self.choose_dt()
         s = self.state
@@ -358,11 +359,18 @@ class Simulation:
             if not bool(torch.isfinite(self.state.T).all()):
                 k = int(torch.nonzero(~torch.isfinite(self.state.T))[0])
                 lim = getattr(self, "_pre_limits", None) or self.limits()
+                bname = min(lim, key=lim.get)
+                # the heat terms at the particle, from the last good temperatures
+                _, parts = self.thermal.power(self.state, self._T_prev, self.t, per_particle=True)
+                mags = {n: abs(float(torch.nan_to_num(v[k], nan=float("inf")))) for n, v in parts.items()}
+                term = max(mags, key=mags.get)
+                over = sorted(((dt / v, n) for n, v in lim.items() if dt > v), reverse=True)
                 raise SimulationError(
                     f"blow-up at step {self.step}, t = {self.t:.6g} s: non-finite temperature at "
-                    f"particle id {int(self.state.id[k])}; largest term there: conduction; dt used "
-                    f"{dt:.3g} s ({limit}), binding dt limit before the step: thermal = "
-                    f"{lim.get('thermal', math.inf):.3g} s")
+                    f"particle id {int(self.state.id[k])}; largest term there: {term} "
+                    f"({mags[term]:.3g} W); dt used {dt:.3g} s ({limit}), binding dt limit before the "
+                    f"step: {bname} = {lim[bname]:.3g} s"
+                    + ("; dt exceeded " + ", ".join(f"{n} x{f:.3g}" for f, n in over) if over else ""))
             return
         bad_nan = not (math.isfinite(m["vmax"]) and math.isfinite(m["amax"]))
         bad_comp = m["compression"] > self.max_compression

@@ -272,29 +272,29 @@ class Conduction:
         z = torch.where((z > 0.95) & (z < 1.05), z, torch.ones_like(z))
         return embed(self.rows, z, state.n) + self.wall_mask.to(z.dtype)
 
-    def power(self, state: ParticleState, T: torch.Tensor, t: float) -> tuple[torch.Tensor, dict]:
+    def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False):
         """Heat per particle (W): conduction V_i div(k grad T), beam power, minus surface
-        losses; and the totals by kind (W). The step integrates the specific enthalpy,
+        losses; and the totals by kind (W) (with ``per_particle``, the per-particle arrays by
+        kind instead, for a diagnosis). The step integrates the specific enthalpy,
         dh/dt = P_i / m_i, and recovers T from h(T) = int c_eff dT (2.11): the same model as
         rho c_eff dT/dt = div(k grad T) + sources, but the latent heat is absorbed exactly
         however narrow the mushy interval is compared with one step's temperature change."""
-        P_cond = self.heat_rate(state, T) * (state.m / state.rho)
-        P = P_cond
-        totals = {"conduction": P_cond.sum(), "beam": torch.zeros((), dtype=T.dtype, device=T.device)}
+        parts = {"conduction": self.heat_rate(state, T) * (state.m / state.rho)}
         if self.beams:
             inside = ~self.wall_mask
             P_beam = sum(beam_power(state.x, torch.ones_like(inside), b, t, self.dx) for b in self.beams)
-            P_beam = torch.where(inside, P_beam, torch.zeros_like(P_beam))
-            totals["beam"] = P_beam.sum()
-            P = P + P_beam
+            parts["beam"] = torch.where(inside, P_beam, torch.zeros_like(P_beam))
         if self.losses.active:
             if self._area is None:
                 self._area = self.surface_area(state)
             fl = self.losses.flux(T, lambda T_: enthalpy(T_, self.prm, 0.0))
             for name, f in fl.items():
-                Pl = f * self._area
-                totals[name] = -Pl.sum()
-                P = P - Pl
+                parts[name] = -f * self._area
+        P = sum(parts.values())
+        if per_particle:
+            return P, parts
+        totals = {k: v.sum() for k, v in parts.items()}
+        totals.setdefault("beam", torch.zeros((), dtype=T.dtype, device=T.device))
         return P, totals
 
     def surface_area(self, state: ParticleState) -> torch.Tensor:
