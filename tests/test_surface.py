@@ -204,17 +204,17 @@ def birikh_layer(n_depth=10, t_end=0.008):
 
 
 def test_thermocapillary_return_flow_birikh():
-    """Imposed surface gradient, closed ends, 10 layers: the mid-length profile fitted by
-    u = U (a z/d + b (z/d)^2) (no slip at the bottom) has the Birikh shape b / -a = 3/2
-    within 5 % and the surface speed U (a + b) within 12 % of tau d / (4 mu); the error is
-    first order in dx/d (the CSF band carries the stress ~0.65 dx below the surface):
-    -7.0 % at 10 layers, -5.5 % at 20 (n_depth=20, t_end=0.006, ~7 min)."""
-    z, u = birikh_layer()
+    """Imposed surface gradient, closed ends, 10 layers, steady (t = 16 ms: the surface tilt
+    settles with a time scale mu L^2 / (rho g d^3) = 3 ms): the mid-length profile fitted by
+    u = U (a z/d + b (z/d)^2) (no slip at the bottom) has the Birikh shape b / -a = 3/2 and
+    the surface speed U (a + b) = tau d / (4 mu), both within 5 % (measured -0.6 % and
+    +0.3 %; 20 layers at 12 ms: +0.5 % and +0.3 %; at 8 ms, not yet steady: -7 %)."""
+    z, u = birikh_layer(t_end=0.016)
     A = torch.stack([z, z * z], 1)
     a, b = torch.linalg.lstsq(A, u.unsqueeze(1)).solution.squeeze(1).tolist()
     print(f"fit u/U = {a:.3f} z/d + {b:.3f} (z/d)^2 (Birikh: -2, 3); surface speed {a + b:.3f} U")
     assert abs(b / -a - 1.5) < 0.075
-    assert abs(a + b - 1.0) < 0.12
+    assert abs(a + b - 1.0) < 0.05
 
 
 def test_blow_up_above_the_capillary_limit_is_diagnosed():
