@@ -48,8 +48,7 @@ def gradient_moments(x, f, w, m, rho, rows, nb, kernel: Kernel, h: float, domain
     """Pair sums of the corrected gradient (see :func:`corrected_gradient_pairs`): the
     moment matrix B_i = sum_j V_j w_j (x_j - x_i) (x) grad_i W_ij (R, d, d) and
     G_i = sum_j V_j w_j (f_j - f_i) (x) grad_i W_ij ((R, d) or (R, d, d))."""
-    dx, _ = pair_geometry(x, rows, nb, domain, h)
-    r = torch.sqrt(dot(dx, dx)).clamp_min(1e-12 * h)
+    dx, r = pair_geometry(x, rows, nb, domain, h)
     dWr = kernel.dwdr(r, h) / r
     Vw = gather_nb(m, nb) / gather_nb(rho, nb) * gather_nb(w, nb) * dWr  # (R, k)
     gW = Vw.unsqueeze(-1) * dx  # V_j w_j grad_i W_ij
