@@ -5,7 +5,7 @@ import sys
 import pytest
 
 from conftest import CASES, ROOT
-from torchsph.config import CaseError, load_case
+from torchsph.config import load_raw, CaseError, load_case
 
 GOOD = (CASES / "taylor_green_2d" / "case.toml").read_text()
 
@@ -49,7 +49,9 @@ def test_good_cases_load():
     for case in sorted(p for p in CASES.iterdir() if (p / "case.toml").exists()):
         _, cfg = load_case(case)
         assert cfg["scene"]["type"] in {"taylor_green", "poiseuille", "hydrostatic_tank", "conduction_1d",
-                                        "gaussian_bump", "block", "drop"}
+                                        "gaussian_bump", "block", "drop", "deposition"}
+        if "preview" in load_raw(case)[1]:  # the preview variant is a valid case too
+            load_case(case, preview=True)
 
 
 def test_overrides_are_validated():

@@ -24,6 +24,10 @@ def parse_args(argv=None):
                     help="override a case key (TOML value), repeatable")
     ap.add_argument("--compile", action="store_true",
                     help="fuse the pair loops with torch.compile (same as --set numerics.compile=true)")
+    ap.add_argument("--preview", action="store_true",
+                    help="run the case's coarse, short [preview] variant (minutes on a laptop CPU)")
+    ap.add_argument("--no-skip", action="store_true",
+                    help="integrate every particle (no active set; same as --set numerics.skip_cold_solid=false)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     ap.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                     help="write OUT/checkpoint.pt every N steps (always at the end and on Ctrl-C)")
@@ -39,9 +43,10 @@ def main(argv=None) -> int:
             raise CaseError(f"--t-end {args.t_end}: must be > 0")
         if args.steps is not None and args.steps <= 0:
             raise CaseError(f"--steps {args.steps}: must be > 0")
-        overrides = args.overrides + (["numerics.compile=true"] if args.compile else [])
-        path, cfg = load_case(args.case, overrides)
-        out = args.out if args.out is not None else path.parent / "output"
+        overrides = (args.overrides + (["numerics.compile=true"] if args.compile else [])
+                     + (["numerics.skip_cold_solid=false"] if args.no_skip else []))
+        path, cfg = load_case(args.case, overrides, preview=args.preview)
+        out = args.out if args.out is not None else path.parent / ("output_preview" if args.preview else "output")
         from .runner import run_case
         if args.checkpoint_every is not None and args.checkpoint_every <= 0:
             raise CaseError(f"--checkpoint-every {args.checkpoint_every}: must be > 0")

@@ -57,11 +57,16 @@ def snapshot(sim) -> dict:
         "nl": {"x_ref": _cpu(sim.nl.x_ref), "nb": _cpu(sim.nl.nb), "mask": _cpu(sim.nl.mask),
                "n_builds": sim.nl.n_builds},
         "rng": torch.get_rng_state(),
+        "stale": sim._stale,
+        "plan": {"steps": sim.plan.steps, "sums": sim.plan.sums},
     }
+    if sim.active_set is not None:
+        d["active"] = {k: _cpu(v) for k, v in sim.active_set.to_dict().items()}
     th = sim.thermal
     if th is not None:
         d["thermal"] = {"T_set": _cpu(th.T_set), "zeta": _cpu(th._zeta), "area": _cpu(th._area),
-                        "normal": _cpu(getattr(th, "normal", None))}
+                        "normal": _cpu(getattr(th, "normal", None)), "lit": _cpu(getattr(th, "lit", None)),
+                        "q_cond": _cpu(th.q_cond), "t_cond": th.t_cond}
     sf = sim.surface_model
     if sf is not None:
         d["surface"] = {"normal": _cpu(sf.normal), "kappa": _cpu(sf.kappa)}
@@ -122,6 +127,16 @@ def restore(sim, d: dict, cfg_hash: str | None = None, path: str = "checkpoint")
     nl = d["nl"]
     sim.nl.x_ref, sim.nl.nb, sim.nl.mask = to(nl["x_ref"]), to(nl["nb"]), to(nl["mask"])
     sim.nl.n_builds = nl["n_builds"]
+    sim._stale = d.get("stale", False)
+    if sim.active_set is not None and "active" in d:
+        a = d["active"]
+        sim.active_set.active, sim.active_set.work = to(a["active"]), to(a["work"])
+        sim.active_set.frontier, sim.active_set.n_refresh = to(a["frontier"]), a["n_refresh"]
+    th = sim.thermal
+    if th is not None and th.k.shape[0] != sim.state.n:  # particles were added (a fed wire)
+        th.k = torch.full((sim.state.n,), th.prm.conductivity, dtype=dt, device=dev)
+    if "plan" in d:
+        sim.plan.steps, sim.plan.sums = d["plan"]["steps"], d["plan"]["sums"]
     sim._select()  # pair subsets: a function of the neighbour table and the phases
     sim.dvdt, sim.drhodt, sim.dTdt = to(d["dvdt"]), to(d["drhodt"]), to(d["dTdt"])
     sim.energy = {k: to(v) for k, v in d["energy"].items()}
@@ -129,9 +144,11 @@ def restore(sim, d: dict, cfg_hash: str | None = None, path: str = "checkpoint")
         sim._heat = {k: to(v) for k, v in d["heat"].items()}
     if d.get("E0") is not None:
         sim._E0 = d["E0"]
-    th = sim.thermal
     if th is not None and "thermal" in d:
         c = d["thermal"]
+        if c.get("lit") is not None:
+            th.lit = to(c["lit"])
+        th.q_cond, th.t_cond = to(c.get("q_cond")), c.get("t_cond")
         th.T_set = to(c["T_set"])
         th._zeta, th._area = to(c["zeta"]), to(c["area"])
         if c["normal"] is not None:

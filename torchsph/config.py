@@ -142,6 +142,13 @@ NUMERICS = {
     "allow_unstable_dt": Key("bool", default=False, doc="accept a fixed dt above a stability limit"),
     "max_compression": Key("float", default=0.3, gt=0, lt=1,
                            doc="|rho/rho0 - 1| above which the run stops as blown up"),
+    "skip_cold_solid": Key("bool", default=True,
+                           doc="leave solid within active_tolerance_K of ambient out of the work (--no-skip: false)"),
+    "conduction_reuse": Key("float", default=0.1, ge=0, le=1,
+                            doc="multi-rate conduction: re-evaluate it once per this fraction of the thermal "
+                                "limit (0 = every step)"),
+    "active_tolerance_K": Key("float", default=1.0, gt=0,
+                              doc="|T - ambient| below which solid far from heat is left out"),
 }
 
 RUN = {
@@ -192,7 +199,7 @@ SURFACE = {
                      doc="|grad c| h above which a particle is on the free surface"),
 }
 
-TOP = ("scene", "fluid", "thermal", "beam", "surface", "numerics", "run")
+TOP = ("scene", "fluid", "thermal", "beam", "surface", "numerics", "run", "preview")
 
 
 def _set_dotted(raw: dict, dotted: str, value_text: str):
@@ -239,6 +246,7 @@ def validate(raw: dict) -> dict:
     """Validate a raw case dict; returns the resolved configuration (defaults filled)."""
     from .scenes import SCENES
 
+    raw = {k: v for k, v in raw.items() if k != "preview"}  # applied by load_case(preview=True)
     unknown = sorted(set(raw) - set(TOP))
     if unknown:
         raise CaseError(f"unknown section [{unknown[0]}] (allowed: {', '.join(TOP)})")
@@ -326,10 +334,41 @@ def validate(raw: dict) -> dict:
     return cfg
 
 
-def load_case(case_dir: str | Path, overrides: list[str] | None = None) -> tuple[Path, dict]:
-    """Read, override and validate a case; errors name the file."""
+def preview_overrides(raw: dict) -> list[str]:
+    """The case's ``[preview]`` table ("section.key" = value) as --set overrides."""
+    pv = raw.get("preview")
+    if pv is None:
+        raise CaseError("--preview: the case has no [preview] table (\"section.key\" = value, e.g. "
+                        "\"scene.dx_m\" = 2.5e-4)")
+    if not isinstance(pv, dict):
+        raise CaseError(f"[preview] must be a table, got {_fmt(pv)}")
+    out = []
+    for k, v in pv.items():
+        if isinstance(v, dict):  # a dotted key parsed as a nested table: scene.dx_m = ...
+            out += [f"{k}.{kk}={_toml(vv)}" for kk, vv in v.items()]
+        else:
+            out.append(f"{k}={_toml(v)}")
+    return out
+
+
+def _toml(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v + '"'
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml(c) for c in v) + "]"
+    return repr(v)
+
+
+def load_case(case_dir: str | Path, overrides: list[str] | None = None,
+              preview: bool = False) -> tuple[Path, dict]:
+    """Read, override and validate a case; errors name the file. ``preview`` applies the
+    case's [preview] overrides first (the command line's come after them)."""
     path, raw = load_raw(case_dir)
     try:
+        if preview:
+            overrides = preview_overrides(raw) + list(overrides or [])
         return path, validate(apply_overrides(raw, overrides))
     except CaseError as e:
         raise CaseError(f"{path}: {e}") from None

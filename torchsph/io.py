@@ -19,6 +19,7 @@ DATASETS = {
     "density": ("rho", "Scalar"),
     "pressure": ("p", "Scalar"),
     "temperature": ("T", "Scalar"),
+    "peak_temperature": ("T_peak", "Scalar"),
     "phase": ("phase", "Scalar"),
     "id": ("id", "Scalar"),
     "body": ("body", "Scalar"),
@@ -70,11 +71,12 @@ def _dataitem(fname: str, name: str, a_shape, dtype) -> str:
             f'Format="HDF">{fname}:/{name}</DataItem>')
 
 
-def write_xdmf(path: Path, snapshots: list[tuple[float, str]], n: int, float_dtype):
-    """Temporal collection of Polyvertex grids, one per snapshot file."""
+def write_xdmf(path: Path, snapshots: list[tuple], float_dtype):
+    """Temporal collection of Polyvertex grids, one per snapshot (t, file, particle count):
+    the count may change between snapshots (a fed wire adds particles)."""
     fdt = np.dtype(float_dtype)
     grids = []
-    for t, fname in snapshots:
+    for t, fname, n in snapshots:
         attrs = []
         for name, (fld, atype) in DATASETS.items():
             if atype is None:

@@ -204,11 +204,30 @@ class VerletList:
             return bool((d != 0).any())
         return bool((d * d).sum(-1).max() > (0.5 * self.skin) ** 2)
 
-    def update(self, x: torch.Tensor, force: bool = False) -> bool:
-        """Rebuild if needed; returns True when the pairs changed."""
+    def update(self, x: torch.Tensor, force: bool = False, subset=None) -> bool:
+        """Rebuild if needed; returns True when the pairs changed. ``subset`` (a callable
+        returning a mask, evaluated only when rebuilding) restricts the search to those
+        particles: the others get empty rows and appear in no row."""
         if force or self.needs_rebuild(x):
-            self.nb, self.mask = build_table(x, self.radius + self.skin, self.domain)
+            work = subset() if subset is not None else None
+            if work is None or bool(work.all()):
+                self.nb, self.mask = build_table(x, self.radius + self.skin, self.domain)
+            else:
+                self.nb, self.mask = subset_table(x, work, self.radius + self.skin, self.domain)
             self.x_ref = x.clone()
             self.n_builds += 1
             return True
         return False
+
+
+def subset_table(x: torch.Tensor, work: torch.Tensor, radius: float, domain: Domain):
+    """:func:`build_table` over the particles ``work`` only, in the full numbering: rows of
+    the others hold only themselves (mask False)."""
+    idx = torch.nonzero(work).squeeze(1)
+    nb_w, mask_w = build_table(x.index_select(0, idx), radius, domain)
+    N, k = x.shape[0], nb_w.shape[1]
+    nb = torch.arange(N, device=x.device).unsqueeze(1).repeat(1, k)
+    nb.index_copy_(0, idx, idx.index_select(0, nb_w.reshape(-1)).view_as(nb_w))
+    mask = torch.zeros((N, k), dtype=torch.bool, device=x.device)
+    mask.index_copy_(0, idx, mask_w)
+    return nb, mask

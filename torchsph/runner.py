@@ -14,6 +14,7 @@ from .kernels import make_kernel
 from .scenes import SCENES, Scene, build_scene
 from .beam import Beam
 from .thermal import Conduction, SurfaceLosses, ThermalParams
+from .active import ActiveSet
 from .simulation import Simulation
 from .surface import SurfaceForces, SurfaceParams
 
@@ -68,14 +69,40 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
                                 compile=compile)
     # nothing moves in a scene without fluid (rigid solids at rest): no Verlet skin needed
     skin = nm["skin_over_dx"] * scene.dx if fluid is not None else 0.0
+    active = None
+    if nm["skip_cold_solid"] and thermal is not None:
+        support = kernel.radius(h)
+        active = ActiveSet(nm["active_tolerance_K"], cfg["thermal"]["ambient_K"], support, support + skin)
     sim = Simulation(scene.state, fluid, scene.domain, skin=skin,
                      cfl=nm["cfl"], dt_fixed=nm["dt_s"], allow_unstable_dt=nm["allow_unstable_dt"],
                      max_compression=nm["max_compression"], dx=scene.dx,
                      damping_time=nm["damping_time_s"], thermal=thermal,
                      phase_change=(cfg["thermal"]["solidus_K"], cfg["thermal"]["liquidus_K"],
                                    cfg["thermal"]["mushy_drag_1_s"]) if phase_change else None,
-                     surface=surface)
+                     surface=surface, active=active, feeder=scene.info.get("feeder"),
+                     cond_reuse=nm["conduction_reuse"])
     return scene, sim
+
+
+def physics_plan(sim: Simulation) -> dict:
+    """What the scene evaluates, and what it skips (terms it does not declare cost nothing)."""
+    plan = {"momentum": sim.fluid_model is not None, "conduction": sim.thermal is not None}
+    if sim.fluid_model is not None:
+        prm = sim.fluid_model.prm
+        plan.update({"viscosity": prm.eta > 0, "gravity": any(prm.gravity),
+                     "density_diffusion": prm.density_diffusion > 0, "shifting": prm.shifting > 0})
+    if sim.thermal is not None:
+        L = sim.thermal.losses
+        plan.update({"beams": len(sim.thermal.beams), "radiation": L.emissivity > 0,
+                     "convection": L.convection > 0, "evaporation": L.evaporation,
+                     "phase_change": sim.phase_change is not None})
+    sf = sim.surface_model
+    plan.update({"surface_tension": sf is not None and sf.prm.tension > 0,
+                 "marangoni": sf is not None and sf.marangoni_on,
+                 "recoil": sf is not None and sf.prm.recoil,
+                 "active_set": (f"on (tolerance {sim.active_set.tol:g} K)" if sim.active_set is not None
+                                else "off")})
+    return plan
 
 
 class RunStats:
@@ -147,7 +174,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     if interval is None:
         interval = (t_end / 10.0) if t_end is not None else math.inf
     every_steps = max(steps // 10, 1) if (steps is not None and run["output_interval_s"] is None) else None
-    snaps: list[tuple[float, str]] = []
+    snaps: list[tuple[float, str, int]] = []
     fdt = sim.state.x.detach().cpu().numpy().dtype
     chash = ckpt.config_hash(cfg)
     ck_path = out_dir / "checkpoint.pt"
@@ -155,13 +182,24 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     if restart is not None:
         extra = ckpt.restore(sim, ckpt.load(restart), chash, str(restart))
         snaps = [tuple(x) for x in extra.get("snaps", [])]
+        if sim.feeder is not None and "feeder" in extra:
+            sim.feeder.load_state_dict(extra["feeder"])
         resumed = extra
 
+    deposit = []  # deposition measures at each snapshot
+
     def snapshot():
+        if "feeder" in scene.info:
+            from .deposition import measure
+            sc = cfg["scene"]
+            deposit.append(measure(sim.state, scene.info, sim.t, sc["substrate_velocity_m_s"][0],
+                                   sc["wire_feed_m_s"], cfg["fluid"]["rho0_kg_m3"],
+                                   cfg["thermal"]["liquidus_K"], scene.dx))
+            sio.write_json(out_dir / "deposit.json", deposit)
         name = f"snap_{len(snaps):05d}.h5"
         sio.write_snapshot(out_dir / name, sim.state, sim.t, sim.step)
-        snaps.append((sim.t, name))
-        sio.write_xdmf(out_dir / "particles.xdmf", snaps, sim.state.n, fdt)
+        snaps.append((sim.t, name, sim.state.n))
+        sio.write_xdmf(out_dir / "particles.xdmf", snaps, fdt)
 
     if resumed is None:
         snapshot()
@@ -175,19 +213,22 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         interrupted[0] = True
 
     def write_checkpoint():
-        ckpt.save(sim, ck_path, chash, {"snaps": snaps, "next_out": next_out[0]})
-    n = sim.state.n
+        ckpt.save(sim, ck_path, chash, {"snaps": snaps, "next_out": next_out[0],
+                                        **({"feeder": sim.feeder.state_dict()} if sim.feeder else {})})
     bar = tqdm(total=steps if steps is not None else t_end, disable=not progress,
                unit="step" if steps is not None else "s", dynamic_ncols=True, mininterval=0.5,
                bar_format="{l_bar}{bar}| {n:.4g}/{total:.4g} [{elapsed}<{remaining}{postfix}]")
     t0 = time.perf_counter()
 
+    psteps = [0]  # particle-steps done (the count may grow: a fed wire)
+
     def callback(sim, info):
+        psteps[0] += sim.state.n
         bar.update(1 if steps is not None else info.dt)
         if sim.step % 20 == 0:
             el = time.perf_counter() - t0
             bar.set_postfix_str(f"step {sim.step} t={sim.t:.4g}s dt={info.dt:.3g}({info.limit}) "
-                                f"N={n} {n * sim.step / max(el, 1e-9):.3g} p-steps/s", refresh=False)
+                                f"N={sim.state.n} {psteps[0] / max(el, 1e-9):.3g} p-steps/s", refresh=False)
         due = (every_steps is not None and sim.step % every_steps == 0) or \
               (every_steps is None and sim.t >= next_out[0] * (1 - 1e-9))
         if due:
@@ -214,14 +255,14 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         binding = f"fixed ({sim.binding_limit()[0]} limit binds)"
     summary = {
         "case": str(case_path),
-        "n_particles": n,
+        "n_particles": sim.state.n,
         "n_fluid": sim.n_fluid,
         "n_pairs": sim.n_pairs,
         "steps": sim.step,
         "t_final_s": sim.t,
         "wall_s": wall,
         "setup_s": setup_s,
-        "particle_steps_per_s": n * sim.step / wall if wall > 0 else None,
+        "particle_steps_per_s": psteps[0] / wall if wall > 0 else None,
         "device": str(sim.state.device),
         "dtype": str(sim.state.dtype).replace("torch.", ""),
         "dt_binding_limit": binding,
@@ -232,6 +273,10 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         "mach_max": stats.vmax / sim.fluid.prm.c0 if sim.fluid is not None else None,
         "neighbour_builds": sim.nl.n_builds,
         "energy": sim.energy_balance(),
+        "physics_plan": physics_plan(sim),
+        "active_fraction": sim.plan.report(),
+        "active_set_refreshes": sim.active_set.n_refresh if sim.active_set is not None else None,
+        "peak_temperature_K": float(sim.state.T_peak.max()) if sim.thermal is not None else None,
         "snapshots": len(snaps),
         "torch": torch.__version__,
     }

@@ -389,7 +389,36 @@ SCENES: dict[str, SceneSpec] = {
          "shape": Key("str", default="ball", choices=("ball", "box"), doc="disc/ball or square/cube"),
          "mode2_velocity_m_s": Key("float", default=0.0, doc="initial mode-2 velocity amplitude U0")},
         (3, 2), build_drop, None, "free liquid drop (surface-tension studies)"),
+    "deposition": SceneSpec(
+        {"substrate_size_m": Key("vec", doc="substrate block (x travel, y width, z thickness)"),
+         "dx_m": Key("float", gt=0, doc="particle spacing"),
+         "temperature_K": Key("float", default=300.0, gt=0, doc="initial temperature of substrate and wire"),
+         "substrate_velocity_m_s": Key("vec", doc="substrate velocity [V_sub, 0, 0]"),
+         "wire_offset_m": Key("float", default=2.0e-3, ge=0,
+                              doc="distance from the substrate's leading (+x) edge back to the wire at t = 0"),
+         "wire_diameter_m": Key("float", gt=0, doc="wire diameter d"),
+         "wire_length_m": Key("float", gt=0, doc="wire modelled above its tip (fed continuously)"),
+         "wire_feed_m_s": Key("float", ge=0, doc="wire feed speed V_wire (along -z)"),
+         "wire_gap_m": Key("float", ge=0, doc="height of the wire tip above the substrate at t = 0"),
+         "source_layout": Key("str", choices=("along", "perpendicular", "none"),
+                              doc="sources in the plane of travel (ahead/behind) or across it"),
+         "source_count": Key("int", default=2, ge=1, doc="number of sources, evenly spaced in azimuth"),
+         "source_power_W": Key("float", default=0.0, ge=0, doc="power of each source Q0"),
+         "source_efficiency": Key("float", default=0.85, gt=0, le=1, doc="absorbed fraction eta0"),
+         "source_radius_m": Key("float", default=0.75e-3, gt=0, doc="1/e^2 spot radius r"),
+         "source_azimuth_deg": Key("float", default=45.0, ge=0, lt=90, doc="tilt from the vertical"),
+         "source_aim_height_m": Key("float", default=None,
+                                    doc="height of the aim point on the wire axis (default: the tip, wire_gap_m)")},
+        (3,), lambda cfg, dtype, device: _deposition().build(cfg, dtype, device),
+        lambda cfg: _deposition().check(cfg),
+        "substrate moving under a fed wire, sources aimed at the wire tip",
+        has_fluid=False, needs_thermal=True),
 }
+
+
+def _deposition():
+    from . import deposition
+    return deposition
 
 
 def build_scene(cfg, dtype=torch.float64, device="cpu") -> Scene:

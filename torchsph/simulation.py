@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .active import ActiveSet
 from .fluid import WeaklyCompressibleFluid, neighbour_average
 from .surface import SurfaceForces
 from .thermal import Conduction
@@ -40,6 +41,59 @@ LIMIT_FORMULAS = {
 }
 
 
+class PlanStats:
+    """Per-term work actually done, averaged over the steps: particles (rows) and pairs
+    each term evaluated, against all particles and the pairs a full table would hold
+    (estimated as N x the mean neighbour count of the rows that were built)."""
+
+    def __init__(self):
+        self.steps = 0
+        self.sums: dict[str, list[float]] = {}
+        self.current: dict[str, tuple[int, int]] = {}
+        self.all_pairs = 0.0
+        self.n = 0
+
+    def select(self, sim):
+        s = sim.state
+        cur = {}
+        built = sim.nl.mask.any(1)
+        nbuilt = max(int(built.sum()), 1)
+        self.n = s.n
+        self.all_pairs = s.n * int(sim.nl.mask.sum()) / nbuilt
+        if sim.fluid is not None:
+            f = sim.fluid
+            cur["momentum"] = (f.rows_f.numel(), int(sim.nl.mask.index_select(0, f.rows_f).sum()))
+            if f.has_walls:
+                cur["wall"] = (f.rows_w.numel(), int(f.mask_w.sum()))
+        if sim.thermal is not None:
+            th = sim.thermal
+            cur["conduction"] = (th.rows.numel(), int(sim.nl.mask.index_select(0, th.rows).sum()))
+        self.current = cur
+
+    def add(self, sim):
+        self.steps += 1
+        cur = dict(self.current)
+        if sim.surface is not None:
+            cur["surface"] = (sim.surface.n_surface, 0)
+        if sim.thermal is not None and getattr(sim.thermal, "n_lit", None) is not None:
+            cur["beam"] = (sim.thermal.n_lit, 0)
+        for k, (r, p) in cur.items():
+            acc = self.sums.setdefault(k, [0.0, 0.0, 0.0, 0.0])
+            acc[0] += r
+            acc[1] += p
+            acc[2] += self.n
+            acc[3] += self.all_pairs
+
+    def report(self) -> dict:
+        """{term: {particles: fraction, pairs: fraction}} averaged over the steps."""
+        out = {}
+        for k, (r, p, n, ap) in self.sums.items():
+            out[k] = {"particles": r / n if n else 0.0}
+            if k in ("momentum", "wall", "conduction"):
+                out[k]["pairs"] = p / ap if ap else 0.0
+        return out
+
+
 @dataclass
 class StepInfo:
     dt: float
@@ -56,10 +110,18 @@ class Simulation:
                  allow_unstable_dt: bool = False, max_compression: float = 0.3, dx: float = 0.0,
                  damping_time: float = 0.0, thermal: Conduction | None = None,
                  phase_change: tuple[float, float, float] | None = None,
-                 surface: SurfaceForces | None = None):
+                 surface: SurfaceForces | None = None, active: ActiveSet | None = None,
+                 feeder=None, cond_reuse: float = 0.0):
         """``fluid`` and ``thermal`` are the physics a scene declares; either may be None
-        and then costs nothing (a conduction study has no momentum, a flow no energy)."""
+        and then costs nothing (a conduction study has no momentum, a flow no energy).
+        ``active`` leaves cold quiescent solid out of the work (:mod:`torchsph.active`);
+        ``feeder`` adds particles as the run goes (``new_particles(sim, t)``, e.g. a fed
+        wire). ``cond_reuse`` = f > 0: multi-rate conduction, see :meth:`_reuse_conduction`."""
         self.state = state
+        self.cond_reuse = cond_reuse
+        self.active_set = active if (active is not None and not domain.any_periodic) else None
+        self.feeder = feeder
+        self.plan = PlanStats()
         self.fluid_mask = state.phase == Phase.FLUID
         self.n_fluid = int(self.fluid_mask.sum())
         self.fluid_model = fluid  # active only while there are fluid particles
@@ -92,6 +154,9 @@ class Simulation:
         self.nl = VerletList(some.kernel.radius(some.h), skin, domain)
         self.t = 0.0
         self.step = 0
+        self._stale = False  # the active set must be refreshed at the next rebuild point
+        if self.active_set is not None and thermal is not None:
+            thermal.lit = thermal.lit_mask(state, 0.0)  # the beams' footprint seeds the active set
         self._refresh_pairs(force=True)
         self.dvdt = torch.zeros_like(state.v)
         self.drhodt = torch.zeros_like(state.rho)
@@ -131,13 +196,31 @@ class Simulation:
 
     # --- neighbours ---------------------------------------------------------
     def _refresh_pairs(self, force: bool = False):
-        if self.nl.update(self.state.x, force=force):
+        subset = self._work_set if self.active_set is not None else None
+        if self.nl.update(self.state.x, force=force or self._stale, subset=subset):
+            self._stale = False
             self._select()
 
+    def _work_set(self) -> torch.Tensor:
+        """Refresh the active set (at a neighbour rebuild) and return its work mask."""
+        lit = getattr(self.thermal, "lit", None)
+        self.active_set.refresh(self.state, lit)
+        if self.thermal is not None:
+            self.thermal.q_cond = None  # newly active rows need their conduction
+        return self.active_set.work
+
+    @property
+    def active_mask(self) -> torch.Tensor | None:
+        return self.active_set.active if self.active_set is not None else None
+
     def _select(self):
-        for phys in (self.fluid, self.thermal, self.surface):
+        for phys in (self.fluid, self.surface):
             if phys is not None:
                 phys.select_pairs(self.state, self.nl.nb, self.nl.mask)
+        if self.thermal is not None:
+            self.thermal.select_pairs(self.state, self.nl.nb, self.nl.mask, active=self.active_mask,
+                                      work=self.active_set.work if self.active_set is not None else None)
+        self.plan.select(self)
 
     @property
     def n_pairs(self) -> int:
@@ -222,11 +305,13 @@ class Simulation:
         v_half = s.v + 0.5 * dt * a  # 1a
         v_tilde = s.v + dt * a  # 1b, used by the viscous term at the end of the step
         if self.thermal is not None:  # the energy equation in specific enthalpy h(T)
-            H = self.thermal.to_enthalpy(s.T)
-            H_half = H + 0.5 * dt * self.dTdt  # 1d
+            th = self.thermal
+            rows0 = th.rows  # integrated particles (not walls; only the active set when skipping)
+            H = th.to_enthalpy(s.T)
+            H_half = H + 0.5 * dt * self.dTdt  # 1d (dh/dt = 0 off the rows)
             # extrapolated for the evaluation at the end of the step; walls keep theirs
-            s.T = torch.where(self.thermal.wall_mask, s.T,
-                              self.thermal.to_temperature(H + dt * self.dTdt))
+            s.T = s.T.index_copy(0, rows0, th.to_temperature(
+                H.index_select(0, rows0) + dt * self.dTdt.index_select(0, rows0), s.T.index_select(0, rows0)))
         shift = None
         if self.fluid is not None:
             self.drhodt, shift = self.fluid.continuity(  # at x_n, with u_{n+1/2}
@@ -238,6 +323,18 @@ class Simulation:
                 shift = self.surface.project_shift(shift)
             step = step + shift
         s.x = self.domain.wrap(s.x + step)
+        if self.feeder is not None:  # new particles enter at t + dt
+            new = self.feeder.new_particles(self, self.t + dt)
+            if new is not None and new.n:
+                k = new.n
+                self.add_particles(new)
+                v_half = torch.cat([v_half, new.v])
+                v_tilde = torch.cat([v_tilde, new.v])
+                fm = self.fluid_mask.unsqueeze(-1)
+                if self.thermal is not None:
+                    H_half = torch.cat([H_half, self.thermal.to_enthalpy(new.T)])
+                s = self.state
+                assert s.n == v_half.shape[0] and k > 0
         self._refresh_pairs()
         if self.fluid is not None:
             self.dvdt = self._accelerations(v_tilde)  # 2
@@ -246,20 +343,58 @@ class Simulation:
                     fm, v_tilde, torch.zeros_like(v_tilde))
         s.v = v_half + 0.5 * dt * self.dvdt  # 3c
         if self.thermal is not None:
-            P, heat = self.thermal.power(s, s.T, self.t + dt)  # 2 (W per particle; 0 on walls)
+            P, heat = self.thermal.power(s, s.T, self.t + dt,  # 2 (W per particle; 0 on walls)
+                                         reuse_conduction=self._reuse_conduction(self.t + dt))
             self.dTdt = P / s.m
             for k, v in heat.items():  # accumulated on the device: no sync per step
                 self.energy[k] = self.energy.get(k, 0.0) + 0.5 * dt * (self._heat[k] + v)
             self._heat = heat
-            s.T = torch.where(self.thermal.wall_mask, s.T,
-                              self.thermal.to_temperature(H_half + 0.5 * dt * self.dTdt))  # 3b
+            rows = th.rows if th.rows is rows0 else torch.unique(torch.cat([rows0, th.rows]))
+            s.T = s.T.index_copy(0, rows, th.to_temperature(  # 3b
+                H_half.index_select(0, rows) + 0.5 * dt * self.dTdt.index_select(0, rows), s.T.index_select(0, rows)))
+            s.T_peak = torch.maximum(s.T_peak, s.T)
         self.t += dt
         self.step += 1
         if self.phase_change is not None:
             self._update_phases(dt)
         self.info = self._measure()
         self._check_finite(v_tilde, dt, limit)
+        if self.active_set is not None and self.active_set.stale(s, getattr(self.thermal, "lit", None)):
+            self._stale = True  # heat reached the frontier band: refresh at the next rebuild point
+        self.plan.add(self)
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])
+
+    def _reuse_conduction(self, t_new: float) -> bool:
+        """Multi-rate conduction: the conduction power is re-evaluated only once the time since
+        its last evaluation would exceed f x the thermal limit (f = numerics.conduction_reuse);
+        in between it is held. Held rates are the explicit Euler step of size <= f x limit for
+        the diffusion, stable for f <= 1 and conservative (the pair exchange stays
+        antisymmetric); the beam, losses and phase change are evaluated every step. With the
+        melt's acoustic step 300x below the thermal limit, f = 0.1 evaluates conduction about
+        once in 30 steps. Scenes stepping at the thermal limit (no fluid) evaluate it every step."""
+        th = self.thermal
+        if self.cond_reuse <= 0 or th.q_cond is None or th.t_cond is None:
+            return False
+        lim = self._pre_limits.get("thermal", 0.0)
+        return t_new - th.t_cond <= self.cond_reuse * lim
+
+    def add_particles(self, new: ParticleState):
+        """Append particles (e.g. a fed wire's new layer) at rest relative to their body,
+        with zero rates; the neighbour list is rebuilt at the next rebuild point (forced)."""
+        z = lambda t: torch.cat([t, torch.zeros((new.n,) + t.shape[1:], dtype=t.dtype, device=t.device)])  # noqa: E731
+        self.state = ParticleState.cat([self.state, new])
+        self.dvdt, self.drhodt = z(self.dvdt), z(self.drhodt)
+        if self.dTdt is not None:
+            self.dTdt = z(self.dTdt)
+            self.thermal.add_particles(new)
+            # the enthalpy the new particles bring in (the stored energy counts it)
+            fed = (new.m * self.thermal.to_enthalpy(new.T)).sum()
+            self.energy["fed"] = self.energy.get("fed", 0.0) + fed
+        if self.active_set is not None:
+            self.active_set.pad(new.n)
+        self.fluid_mask = self.state.phase == Phase.FLUID
+        self.n_fluid = int(self.fluid_mask.sum())
+        self._stale = True
 
     def _resting_body(self, rows: torch.Tensor):
         """For each of ``rows``: the rigid body with the largest kernel weight among its

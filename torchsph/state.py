@@ -15,7 +15,7 @@ class Phase(enum.IntEnum):
     SOLID = 2  # rigid body that conducts heat (moves kinematically; energy equation only)
 
 
-FLOAT_FIELDS = ("x", "v", "rho", "m", "p", "T")
+FLOAT_FIELDS = ("x", "v", "rho", "m", "p", "T", "T_peak")
 INT_FIELDS = ("phase", "id", "body")
 
 
@@ -24,7 +24,8 @@ class ParticleState:
     """Fields of N particles in d dimensions (SI units).
 
     x, v: (N, d) position and velocity; rho, m, p, T: (N,) density, mass, pressure and
-    temperature; phase: (N,) int8 :class:`Phase`; id: (N,) int64 stable particle id;
+    temperature; T_peak: (N,) the highest temperature each particle has reached (the fusion
+    line is where it crossed the liquidus); phase: (N,) int8 :class:`Phase`; id: (N,) int64 stable particle id;
     body: (N,) int64 rigid body a particle belongs to (0: none, e.g. melt; 1, 2, ...:
     substrate, wire) -- a solid moves with its body's velocity, melt that solidifies
     joins the body it rests on.
@@ -36,6 +37,7 @@ class ParticleState:
     m: torch.Tensor
     p: torch.Tensor
     T: torch.Tensor
+    T_peak: torch.Tensor
     phase: torch.Tensor
     id: torch.Tensor
     body: torch.Tensor
@@ -87,9 +89,10 @@ class ParticleState:
         x = f(x)
         n = x.shape[0]
         full = lambda a: f(a).expand(n).clone() if f(a).ndim == 0 else f(a)  # noqa: E731
+        T = full(0.0 if T is None else T)
         return ParticleState(
             x=x, v=f(v).reshape(x.shape).clone(), rho=full(rho), m=full(m),
-            p=full(0.0 if p is None else p), T=full(0.0 if T is None else T),
+            p=full(0.0 if p is None else p), T=T, T_peak=T.clone(),
             phase=torch.as_tensor(phase, dtype=torch.int8, device=device).expand(n).clone(),
             id=(torch.arange(n, device=device) if id is None
                 else torch.as_tensor(id, dtype=torch.long, device=device)),

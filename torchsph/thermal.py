@@ -49,13 +49,27 @@ def enthalpy(T: torch.Tensor, prm: ThermalParams, T_ref: float) -> torch.Tensor:
     return h
 
 
-def temperature_from_enthalpy(H: torch.Tensor, prm: ThermalParams, T_ref: float) -> torch.Tensor:
+def temperature_from_enthalpy(H: torch.Tensor, prm: ThermalParams, T_ref: float,
+                              guess: torch.Tensor | None = None) -> torch.Tensor:
     """Invert h(T) = H (h from :func:`enthalpy`): exact for no latent heat; with latent
     heat, bisection on the bracket the latent part allows (h is strictly increasing, as
-    c_eff >= c_p > 0), then two Newton polishes. Vectorised over particles."""
+    c_eff >= c_p > 0), then two Newton polishes. Vectorised over particles.
+
+    With a ``guess`` (last step's temperatures) three Newton steps are tried first; the
+    rows whose residual |h(T) - H| is not below 1e-11 c_p max(T, 1) (e.g. a step across the
+    mushy interval) fall back to the bisection."""
     cp = prm.specific_heat
     if prm.latent_heat <= 0.0:
         return T_ref + H / cp
+    if guess is not None and H.numel():
+        T = guess
+        for _ in range(3):
+            T = T - (enthalpy(T, prm, T_ref) - H) / effective_heat_capacity(T, prm)
+        bad = ~((enthalpy(T, prm, T_ref) - H).abs() <= 1e-11 * cp * T.abs().clamp_min(1.0))
+        if not bool(bad.any()):
+            return T
+        idx = torch.nonzero(bad).squeeze(1)
+        return T.index_copy(0, idx, temperature_from_enthalpy(H.index_select(0, idx), prm, T_ref))
     dT = prm.liquidus - prm.solidus
     tsl = 0.5 * (prm.solidus + prm.liquidus)
     l_ref = 0.5 * prm.latent_heat * math.erf((T_ref - tsl) / dT)
@@ -223,19 +237,24 @@ class Conduction:
         self.k = conductivity  # (N,) W/(m K), per particle
         self.beams = list(beams)  # surface heat sources (2.7)
         self.dx = dx
+        self.q_cond = None  # conduction power (W per particle) of the last evaluation, and its time
+        self.t_cond = None
         self.losses = losses if losses is not None else SurfaceLosses()
         self.delta_norm = flat_surface_delta(kernel, h_over_dx) if self.losses.active else 1.0
         self._fn = torch.compile(conduction_pairs, dynamic=True) if compile else conduction_pairs
         self._zeta_fn = torch.compile(laplacian_norm, dynamic=True) if compile else laplacian_norm
 
-    def select_pairs(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor):
+    def select_pairs(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor,
+                     active: torch.Tensor | None = None, work: torch.Tensor | None = None):
+        """Rows: every particle but the walls, or with an active set only its active
+        particles (and the walls of its work set)."""
         wall = state.phase == Phase.WALL
         self.wall_mask = wall
         self._zeta = None  # Laplacian normalisation, recomputed once per neighbour rebuild
         self._area = None  # surface area per particle, likewise
-        self.rows = torch.nonzero(~wall).squeeze(1)
+        self.rows = torch.nonzero(~wall if active is None else ~wall & active).squeeze(1)
         self.nb = nb.index_select(0, self.rows)
-        self.rows_w = torch.nonzero(wall).squeeze(1)
+        self.rows_w = torch.nonzero(wall if work is None else wall & work).squeeze(1)
         if not hasattr(self, "T_set"):
             self.T_set = state.T.clone()  # the walls' prescribed temperatures
         if self.rows_w.numel():
@@ -272,18 +291,25 @@ class Conduction:
         z = torch.where((z > 0.95) & (z < 1.05), z, torch.ones_like(z))
         return embed(self.rows, z, state.n) + self.wall_mask.to(z.dtype)
 
-    def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False):
+    def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False,
+              reuse_conduction: bool = False):
         """Heat per particle (W): conduction V_i div(k grad T), beam power, minus surface
         losses; and the totals by kind (W) (with ``per_particle``, the per-particle arrays by
         kind instead, for a diagnosis). The step integrates the specific enthalpy,
         dh/dt = P_i / m_i, and recovers T from h(T) = int c_eff dT (2.11): the same model as
         rho c_eff dT/dt = div(k grad T) + sources, but the latent heat is absorbed exactly
         however narrow the mushy interval is compared with one step's temperature change."""
-        parts = {"conduction": self.heat_rate(state, T) * (state.m / state.rho)}
+        if reuse_conduction and self.q_cond is not None:  # multi-rate: see Simulation.cond_reuse
+            q = self.q_cond
+        else:
+            q = self.heat_rate(state, T) * (state.m / state.rho)
+            if not per_particle:
+                self.q_cond, self.t_cond = q, t
+        parts = {"conduction": q}
         if self.beams:
-            inside = ~self.wall_mask
-            P_beam = sum(beam_power(state.x, torch.ones_like(inside), b, t, self.dx) for b in self.beams)
-            parts["beam"] = torch.where(inside, P_beam, torch.zeros_like(P_beam))
+            parts["beam"] = self.beam_power(state, t, self.rows)
+            self.lit = parts["beam"] > 0
+            self.n_lit = int(self.lit.sum())
         if self.losses.active:
             if self._area is None:
                 self._area = self.surface_area(state)
@@ -296,6 +322,29 @@ class Conduction:
         totals = {k: v.sum() for k, v in parts.items()}
         totals.setdefault("beam", torch.zeros((), dtype=T.dtype, device=T.device))
         return P, totals
+
+    def beam_power(self, state: ParticleState, t: float, rows: torch.Tensor) -> torch.Tensor:
+        """Power (W) each particle absorbs from all beams; only ``rows`` absorb or shadow
+        (with an active set, the beams' footprints are in it: lit particles seed it)."""
+        x = state.x.index_select(0, rows)
+        material = torch.ones(rows.numel(), dtype=torch.bool, device=x.device)
+        P = sum(beam_power(x, material, b, t, self.dx) for b in self.beams)
+        return embed(rows, P, state.n)
+
+    def lit_mask(self, state: ParticleState, t: float) -> torch.Tensor | None:
+        """Particles any beam lights at time t (all non-wall particles considered)."""
+        if not self.beams:
+            return None
+        return self.beam_power(state, t, torch.nonzero(state.phase != Phase.WALL).squeeze(1)) > 0
+
+    def add_particles(self, new: ParticleState):
+        """Extend the per-particle arrays for particles appended to the state."""
+        self.q_cond = None
+        self.k = torch.cat([self.k, torch.full((new.n,), self.prm.conductivity, dtype=self.k.dtype,
+                                               device=self.k.device)])
+        self.T_set = torch.cat([self.T_set, new.T])
+        if getattr(self, "lit", None) is not None:
+            self.lit = torch.cat([self.lit, torch.zeros(new.n, dtype=torch.bool, device=self.lit.device)])
 
     def surface_area(self, state: ParticleState) -> torch.Tensor:
         """Area (m^2) of free surface each particle stands for: V_i |grad c_i| (the CSF
@@ -316,8 +365,8 @@ class Conduction:
     def to_enthalpy(self, T: torch.Tensor) -> torch.Tensor:
         return enthalpy(T, self.prm, 0.0)
 
-    def to_temperature(self, H: torch.Tensor) -> torch.Tensor:
-        return temperature_from_enthalpy(H, self.prm, 0.0)
+    def to_temperature(self, H: torch.Tensor, guess: torch.Tensor | None = None) -> torch.Tensor:
+        return temperature_from_enthalpy(H, self.prm, 0.0, guess)
 
     def limit(self, state: ParticleState) -> float:
         """Thermal time-step limit 0.125 rho c_p h^2 / k (3.17, fixed)."""

@@ -1,0 +1,66 @@
+"""Steady-bead mass check of a deposition case (issue 5, must-show 1).
+
+Runs a deposition case (default: its preview resolution on a longer substrate, long enough
+for the bead behind the wire to become steady), then reads ``deposit.json`` and reports the
+bead's added cross-section, averaged over the substrate-frame x range that has passed the
+wire and solidified and lies beyond the start-up transient, against the mass-conservation
+value pi d^2 V_wire / (4 V_sub) (2.26 mm^2 for the thesis's scene).
+
+    python scripts/deposition_bead.py cases/perpendicular_350W --t-end 0.4
+    python scripts/deposition_bead.py --read OUT_DIR      # analyse a finished run
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+LONG = ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[10.0e-3, 6.0e-3, 2.5e-3]",
+        "scene.wire_length_m=3.0e-3", "scene.wire_offset_m=1.5e-3", "run.output_interval_s=0.01"]
+
+
+def analyse(out: Path, start_skip_m: float = 1.5e-3, pool_margin_m: float = 2.5e-3) -> dict:
+    cfg = json.loads((out / "config.json").read_text())
+    d = json.loads((out / "deposit.json").read_text())[-1]
+    V = cfg["scene"]["substrate_velocity_m_s"][0]
+    t = d["t_s"]
+    lo, hi = -V * t + pool_margin_m, -start_skip_m  # solidified, past the start transient
+    rows = [(x, a) for x, a in zip(d["bin_centres_m"], d["added_area_m2"]) if lo <= x <= hi]
+    mean = sum(a for _, a in rows) / len(rows) if rows else float("nan")
+    return {"t_s": t, "window_m": [lo, hi], "bins": len(rows), "added_area_mm2": mean * 1e6,
+            "expected_mm2": d["expected_area_m2"] * 1e6,
+            "error": mean / d["expected_area_m2"] - 1 if rows else float("nan"),
+            "wire_fed_kg": d["wire_fed_kg"], "wire_inserted_kg": d["wire_inserted_kg"],
+            "wire_melted_kg": d["wire_melted_kg"], "deposit_kg": d["deposit_kg"],
+            "profile_mm2": [(round(x * 1e3, 3), round(a * 1e6, 3)) for x, a in
+                            zip(d["bin_centres_m"], d["added_area_m2"])],
+            "peak_temperature_K": d["peak_temperature_K"], "melt_pool": d["melt_pool"]}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("case", nargs="?", default=str(ROOT / "cases" / "perpendicular_350W"))
+    ap.add_argument("--t-end", type=float, default=0.4)
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--read", type=Path, default=None, help="only analyse this finished run")
+    ap.add_argument("--set", action="append", default=[], help="extra overrides")
+    a = ap.parse_args()
+    out = a.read
+    if out is None:
+        out = a.out or Path(a.case) / "output_bead"
+        cmd = [sys.executable, "-m", "torchsph", a.case, "--out", str(out), "--t-end", str(a.t_end),
+               "--checkpoint-every", "2000"] + [x for s in LONG + a.set for x in ("--set", s)]
+        print(" ".join(cmd), flush=True)
+        r = subprocess.run(cmd, cwd=ROOT)
+        if r.returncode:
+            sys.exit(r.returncode)
+    res = analyse(out)
+    print(json.dumps({k: v for k, v in res.items() if k != "profile_mm2"}, indent=1))
+    print("added cross-section by substrate-frame x (mm, mm^2):", res["profile_mm2"])
+
+
+if __name__ == "__main__":
+    main()

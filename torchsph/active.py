@@ -1,0 +1,91 @@
+"""The active set: cold, quiescent solid is left out of the work until heat reaches it.
+
+A particle is a *seed* when it is fluid, lit by a beam, or its temperature differs from
+ambient by more than a tolerance ``tol``. Around the seeds three nested regions are
+grown (voxel dilation, conservative: every particle within the distance is included):
+
+- *core* = seeds dilated by one search radius (kernel support + skin): the particles
+  that can receive heat (or melt, or be lit) before the next refresh;
+- *active* = core dilated by one more kernel support: the particles whose energy (and,
+  for fluid, momentum) is integrated; the band active - core is the *frontier*;
+- *work* = active dilated by one search radius: active plus a *halo* of inactive
+  particles that enter the neighbour table as sources only, at their frozen temperature.
+
+The set is refreshed at every neighbour rebuild and whenever a frontier particle becomes
+a seed (checked every step). Error bound: an inactive particle is frozen at a
+temperature within ``tol`` of ambient, and would have stayed within ``tol`` until it was
+activated (it is activated before heat crosses the frontier band), so the heat the halo
+does not take up changes no temperature by more than ``tol``; the energy it does not
+take up is measured (the ``conduction`` term of the energy balance, 0 without skipping
+in a scene without fixed-temperature walls).
+"""
+from __future__ import annotations
+
+import itertools
+import math
+
+import torch
+
+
+def dilate(x: torch.Tensor, seed: torch.Tensor, radius: float) -> torch.Tensor:
+    """Mask of the particles within ``radius`` of a seed particle (voxels of radius / 2:
+    it may include some up to 2 radius further). No loop over particles: a loop over the
+    (2k + 1)^d voxel offsets only."""
+    if radius <= 0 or not bool(seed.any()):
+        return seed.clone()
+    cell = 0.5 * radius
+    k = math.ceil(radius / cell)
+    lo = x.min(0).values
+    c = torch.floor((x - lo) / cell).long() + k  # >= k, so offsets stay non-negative
+    dims = (c.max(0).values + k + 1).tolist()
+    mult = [1] * len(dims)
+    for a in range(len(dims) - 2, -1, -1):
+        mult[a] = mult[a + 1] * dims[a + 1]
+    mult_t = torch.tensor(mult, device=x.device)
+    key = (c * mult_t).sum(-1)
+    sk = torch.unique(key[seed])
+    coords = torch.stack([(sk // m) % dmax for m, dmax in zip(mult, dims)], -1)
+    offs = torch.tensor(list(itertools.product(range(-k, k + 1), repeat=x.shape[1])), device=x.device)
+    grown = torch.unique(((coords.unsqueeze(1) + offs.unsqueeze(0)) * mult_t).sum(-1).reshape(-1))
+    return torch.isin(key, grown)
+
+
+class ActiveSet:
+    """Seeds, core, active, frontier and work masks of a scene (see the module doc)."""
+
+    def __init__(self, tol: float, ambient: float, support: float, search: float):
+        self.tol = tol
+        self.ambient = ambient
+        self.support = support  # kernel support 2h
+        self.search = search  # support + Verlet skin
+        self.active = self.work = self.frontier = None
+        self.n_refresh = 0
+
+    def seeds(self, state, lit: torch.Tensor | None) -> torch.Tensor:
+        from .state import Phase
+
+        s = (state.phase == Phase.FLUID) | ((state.T - self.ambient).abs() > self.tol)
+        if lit is not None:
+            s = s | lit
+        return s
+
+    def refresh(self, state, lit: torch.Tensor | None):
+        seed = self.seeds(state, lit)
+        core = dilate(state.x, seed, self.search)
+        self.active = dilate(state.x, core, self.support)
+        self.frontier = self.active & ~core
+        self.work = dilate(state.x, self.active, self.search)
+        self.n_refresh += 1
+
+    def stale(self, state, lit: torch.Tensor | None) -> bool:
+        """True when a frontier particle has become a seed (heat is near the edge)."""
+        return bool((self.frontier & self.seeds(state, lit)).any())
+
+    def pad(self, n: int):
+        """New particles (appended) start outside every set until the next refresh."""
+        f = lambda m: torch.cat([m, torch.zeros(n, dtype=m.dtype, device=m.device)])  # noqa: E731
+        self.active, self.work, self.frontier = f(self.active), f(self.work), f(self.frontier)
+
+    def to_dict(self) -> dict:
+        return {"active": self.active, "work": self.work, "frontier": self.frontier,
+                "n_refresh": self.n_refresh}

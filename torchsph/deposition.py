@@ -1,0 +1,225 @@
+"""The deposition scene (SPEC §1, §6): a substrate block moving along x under a vertical
+wire fed along -z, heat sources aimed at the wire tip; the wire is fed continuously
+(new layers of particles enter at its top as it advances) and measures of the deposit.
+
+Frames: the wire axis is x = y = 0, the substrate's top face z = 0 at t = 0. The substrate
+(body 1) moves with ``substrate_velocity_m_s`` (along +x), so the material point at x0
+passes under the wire at t = -x0 / V and the bead is laid along x0 < 0. The wire (body 2)
+moves down at the feed speed; its bottom starts ``wire_gap_m`` above the substrate.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .state import ParticleState, Phase
+
+SUBSTRATE, WIRE = 1, 2
+
+
+def disc_lattice(diameter: float, dx: float, dtype, device) -> torch.Tensor:
+    """(n, 2) lattice points inside a disc centred on the origin: of the two lattice
+    placements (a point on the axis, or the axis between four points) the one whose
+    count times dx^2 is nearer the disc area."""
+    best = None
+    R = 0.5 * diameter
+    k = int(math.ceil(R / dx)) + 1
+    for shift in (0.0, 0.5):
+        a = (torch.arange(-k, k + 1, dtype=dtype, device=device) + shift) * dx
+        g = torch.stack(torch.meshgrid(a, a, indexing="ij"), -1).reshape(-1, 2)
+        g = g[(g * g).sum(-1) < R * R]
+        err = abs(g.shape[0] * dx * dx - math.pi * R * R)
+        if best is None or err < best[0]:
+            best = (err, g)
+    return best[1]
+
+
+class WireFeeder:
+    """Feeds a vertical wire: layer j (counted from the bottom of the initial wire) is at
+    z = z0 + (j + 1/2) dx - V t; layers K, K + 1, ... (K initial layers) are added as
+    soon as they have come below the entry plane z0 + K dx, so the lattice continues
+    without gap or overlap and the wire never runs out. Each particle's mass is
+    rho0 (pi d^2 / 4) dx / n_layer: the fed mass flux is exactly rho0 (pi d^2 / 4) V."""
+
+    def __init__(self, layer_xy: torch.Tensor, z0: float, n_layers: int, dx: float, speed: float,
+                 mass: float, rho0: float, T0: float, next_id: int):
+        self.layer_xy = layer_xy
+        self.z0, self.K, self.dx, self.speed = z0, n_layers, dx, speed
+        self.mass, self.rho0, self.T0 = mass, rho0, T0
+        self.next_id = next_id
+        self.n_fed = 0  # layers added so far
+
+    @property
+    def area(self) -> float:
+        """Cross-section the particles stand for, (layer mass) / (rho0 dx)."""
+        return self.mass * self.layer_xy.shape[0] / (self.rho0 * self.dx)
+
+    def layers(self, js: torch.Tensor, t: float) -> ParticleState:
+        xy = self.layer_xy
+        n = xy.shape[0]
+        z = self.z0 + (js.to(xy.dtype) + 0.5) * self.dx - self.speed * t
+        x = torch.cat([xy.repeat(js.numel(), 1), z.repeat_interleave(n).unsqueeze(1)], 1)
+        v = torch.zeros_like(x)
+        v[:, 2] = -self.speed
+        ids = torch.arange(self.next_id, self.next_id + x.shape[0], device=x.device)
+        self.next_id += x.shape[0]
+        return ParticleState.create(x, v, self.rho0, self.mass, Phase.SOLID, T=self.T0, id=ids,
+                                    body=WIRE, dtype=xy.dtype, device=xy.device)
+
+    def new_particles(self, sim, t: float) -> ParticleState | None:
+        self.check_contact(sim)
+        due = int(math.floor(self.speed * t / self.dx + 1e-9)) - self.n_fed
+        if due <= 0:
+            return None
+        js = torch.arange(self.K + self.n_fed, self.K + self.n_fed + due, device=self.layer_xy.device)
+        self.n_fed += due
+        return self.layers(js, t)
+
+    def check_contact(self, sim):
+        """The wire is rigid until it melts: if solid wire reaches into the solid substrate
+        (below its original top face) the sources did not melt the feed, and the run
+        stops with a diagnosis rather than letting two rigid bodies overlap."""
+        s = sim.state
+        z = torch.where((s.body == WIRE) & (s.phase == Phase.SOLID), s.x[:, 2],
+                        torch.full_like(s.x[:, 2], math.inf))
+        k = int(torch.argmin(z))
+        if float(z[k]) < -0.5 * self.dx:
+            from .simulation import SimulationError
+            raise SimulationError(
+                f"step {sim.step}, t = {sim.t:.6g} s: solid wire reached into the substrate (particle id "
+                f"{int(s.id[k])}, z = {float(z[k]):.4g} m, T = {float(s.T[k]):.1f} K): the sources do not "
+                f"melt the feed ({self.speed:g} m/s) before it arrives; raise the source power, aim the "
+                "sources lower (source_aim_height_m), start the wire higher (wire_gap_m) or feed slower")
+
+    def state_dict(self) -> dict:
+        return {"n_fed": self.n_fed, "next_id": self.next_id}
+
+    def load_state_dict(self, d: dict):
+        self.n_fed, self.next_id = d["n_fed"], d["next_id"]
+
+
+def source_beams(sc: dict) -> list[dict]:
+    """[[beam]] tables for the scene's sources: ``source_count`` beams spaced evenly in
+    azimuth around the vertical, the first in the plane of travel (``along``: one ahead,
+    one behind for two) or across it (``perpendicular``: left and right), each tilted
+    ``source_azimuth_deg`` from the vertical and aimed at the wire tip."""
+    if sc["source_layout"] == "none":
+        return []
+    th = math.radians(sc["source_azimuth_deg"])
+    phi0 = 0.0 if sc["source_layout"] == "along" else 0.5 * math.pi
+    aim = [0.0, 0.0, sc["wire_gap_m"] if sc["source_aim_height_m"] is None else sc["source_aim_height_m"]]
+    out = []
+    for k in range(sc["source_count"]):
+        phi = phi0 + 2.0 * math.pi * k / sc["source_count"]
+        # the source sits at azimuth phi above the tip and shines towards it
+        e = [-math.sin(th) * math.cos(phi), -math.sin(th) * math.sin(phi), -math.cos(th)]
+        e = [0.0 if abs(c) < 1e-15 else c for c in e]
+        out.append({"power_W": sc["source_power_W"], "efficiency": sc["source_efficiency"],
+                    "radius_m": sc["source_radius_m"], "direction": e, "aim_m": aim,
+                    "velocity_m_s": [0.0, 0.0, 0.0]})
+    return out
+
+
+def build(cfg, dtype, device):
+    from .scenes import Scene, lattice, _solid
+    from .neighbors import Domain
+
+    sc, fl = cfg["scene"], cfg["fluid"]
+    dx = sc["dx_m"]
+    Lx, Ly, Lz = sc["substrate_size_m"]
+    counts = [max(round(Lx / dx), 1), max(round(Ly / dx), 1), max(round(Lz / dx), 1)]
+    off = sc["wire_offset_m"]
+    origin = [off - counts[0] * dx, -counts[1] * dx / 2, -counts[2] * dx]
+    xs = lattice(counts, dx, origin=origin, dtype=dtype, device=device)
+    T0 = sc["temperature_K"]
+    sub = _solid(xs, fl, dx, 3, T0, dtype, device)
+    sub.v[:] = torch.as_tensor(sc["substrate_velocity_m_s"], dtype=dtype, device=device)
+    sub.body[:] = SUBSTRATE
+    rho0 = fl["rho0_kg_m3"]
+    xy = disc_lattice(sc["wire_diameter_m"], dx, dtype, device)
+    area = math.pi * sc["wire_diameter_m"] ** 2 / 4
+    K = max(round(sc["wire_length_m"] / dx), 1)
+    feeder = WireFeeder(xy, sc["wire_gap_m"], K, dx, sc["wire_feed_m_s"], rho0 * area * dx / xy.shape[0],
+                        rho0, T0, next_id=xs.shape[0])
+    wire = feeder.layers(torch.arange(K, device=device), 0.0)
+    st = ParticleState.cat([sub, wire])
+    hi_z = sc["wire_gap_m"] + K * dx
+    dom = Domain([origin[0], origin[1], origin[2]], [off, -origin[1], hi_z], [False] * 3)
+    info = {"feeder": feeder, "n_substrate": xs.shape[0], "wire_id0": xs.shape[0],
+            "substrate_counts": counts, "substrate_origin": origin, "wire_area": area,
+            "wire_area_lattice": xy.shape[0] * dx * dx, "wire_mass0": float(wire.m.sum())}
+    return Scene(st, dom, dx, info)
+
+
+def check(cfg):
+    from .config import CaseError
+
+    sc = cfg["scene"]
+    v = sc["substrate_velocity_m_s"]
+    if v[1] != 0 or v[2] != 0 or v[0] < 0:
+        raise CaseError(f"[scene] substrate_velocity_m_s = {v}: must be [V, 0, 0] with V >= 0 "
+                        "(travel along +x; the wire is at x = y = 0)")
+    Lx, Ly, Lz = sc["substrate_size_m"]
+    if sc["wire_diameter_m"] >= Ly:
+        raise CaseError(f"[scene] wire_diameter_m = {sc['wire_diameter_m']}: must be < the substrate "
+                        f"width substrate_size_m[1] = {Ly}")
+    if not 0 <= sc["wire_offset_m"] <= Lx:
+        raise CaseError(f"[scene] wire_offset_m = {sc['wire_offset_m']}: must lie in [0, substrate "
+                        f"length {Lx}] (distance from the substrate's leading edge to the wire)")
+    if sc["wire_diameter_m"] < 2 * sc["dx_m"]:
+        raise CaseError(f"[scene] dx_m = {sc['dx_m']}: must be <= wire_diameter_m / 2 = "
+                        f"{sc['wire_diameter_m'] / 2:g} (a wire needs particles across it)")
+    if "thermal" not in cfg or not cfg["thermal"]["phase_change"]:
+        raise CaseError("[thermal] phase_change = false: the deposition scene melts wire and substrate "
+                        "(set phase_change = true)")
+    beams = source_beams(sc)
+    if beams and "thermal" in cfg:
+        cfg["beam"] = cfg.get("beam", []) + beams
+
+
+def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: float, rho0: float,
+            T_liquidus: float, dx: float, bin_m: float | None = None) -> dict:
+    """Deposit and melt-pool measures at time t.
+
+    - ``added_area_m2``: the bead's added cross-section per substrate-frame x bin, from mass:
+      (mass now in the bin, the solid wire excluded, minus the substrate's own mass there)
+      / (rho0 bin length); the steady value is (pi d^2 / 4) V_wire / V_sub by mass conservation;
+    - ``wire_fed_kg`` = rho0 A V_wire t against ``wire_inserted_kg``, the mass of the layers
+      the feeder added (equal to within one layer); ``wire_melted_kg``, the wire-origin mass
+      no longer in the solid wire, against ``deposit_kg``, the mass over the substrate's
+      own in all bins (the difference is material that left the substrate's x range);
+    - the melt pool: particles above the liquidus, their volume and extents, peak temperature.
+    """
+    x, m = state.x, state.m
+    wire_origin = state.id >= info["wire_id0"]
+    solid_wire = (state.body == WIRE) & (state.phase == Phase.SOLID)
+    x0 = x[:, 0] - V_sub * t  # substrate-frame x
+    origin, counts = info["substrate_origin"], info["substrate_counts"]
+    bin_m = bin_m or 4 * dx
+    nb = max(int(counts[0] * dx // bin_m), 1)
+    lo = origin[0]
+    k = torch.floor((x0 - lo) / bin_m).long()
+    keep = (~solid_wire) & (k >= 0) & (k < nb)
+    mass_bin = torch.zeros(nb, dtype=m.dtype, device=m.device).index_add_(0, k[keep], m[keep])
+    m_sub = float(m[0])  # substrate particles all have one mass
+    sub_bin = m_sub * counts[1] * counts[2] * (bin_m / dx)
+    added = (mass_bin - sub_bin) / (rho0 * bin_m)
+    centres = lo + (torch.arange(nb, dtype=m.dtype) + 0.5) * bin_m
+    hot = state.T > T_liquidus
+    pool = {}
+    if bool(hot.any()):
+        xp = x[hot]
+        ext = (xp.max(0).values - xp.min(0).values).tolist()
+        pool = {"length_m": ext[0], "width_m": ext[1], "depth_below_top_m": max(0.0, -float(xp[:, 2].min())),
+                "volume_m3": float((m[hot] / state.rho[hot]).sum())}
+    feeder = info["feeder"]
+    fed = rho0 * feeder.area * V_wire * t
+    inserted = float(m[wire_origin].sum()) - info["wire_mass0"]
+    melted = float(m[wire_origin & ~solid_wire].sum())
+    return {"t_s": t, "bin_centres_m": centres.tolist(), "added_area_m2": added.tolist(),
+            "expected_area_m2": info["wire_area"] * V_wire / V_sub if V_sub > 0 else math.inf,
+            "wire_fed_kg": fed, "wire_inserted_kg": inserted, "wire_melted_kg": melted,
+            "deposit_kg": float((mass_bin - sub_bin).sum()),
+            "peak_temperature_K": float(state.T.max()), "melt_pool": pool,
+            "n_liquid": int(hot.sum()), "n_particles": state.n}
