@@ -6,7 +6,7 @@ bead's added cross-section, averaged over the substrate-frame x range that has p
 wire and solidified and lies beyond the start-up transient, against the mass-conservation
 value pi d^2 V_wire / (4 V_sub) (2.26 mm^2 for the thesis's scene).
 
-    python scripts/deposition_bead.py cases/perpendicular_350W --t-end 0.4
+    python scripts/deposition_bead.py cases/perpendicular_350W --t-end 0.5
     python scripts/deposition_bead.py --read OUT_DIR      # analyse a finished run
 """
 from __future__ import annotations
@@ -22,7 +22,7 @@ LONG = ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[10.0e-3, 6.0e-3, 2.5e-3]",
         "scene.wire_length_m=3.0e-3", "scene.wire_offset_m=1.5e-3", "run.output_interval_s=0.01"]
 
 
-def analyse(out: Path, start_skip_m: float = 1.5e-3, pool_margin_m: float = 2.5e-3) -> dict:
+def analyse(out: Path, start_skip_m: float = 2.0e-3, pool_margin_m: float = 2.5e-3) -> dict:
     cfg = json.loads((out / "config.json").read_text())
     d = json.loads((out / "deposit.json").read_text())[-1]
     V = cfg["scene"]["substrate_velocity_m_s"][0]
@@ -43,7 +43,7 @@ def analyse(out: Path, start_skip_m: float = 1.5e-3, pool_margin_m: float = 2.5e
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("case", nargs="?", default=str(ROOT / "cases" / "perpendicular_350W"))
-    ap.add_argument("--t-end", type=float, default=0.4)
+    ap.add_argument("--t-end", type=float, default=0.5)
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--read", type=Path, default=None, help="only analyse this finished run")
     ap.add_argument("--set", action="append", default=[], help="extra overrides")

@@ -10,7 +10,7 @@ import numpy as np
 from conftest import CASES, ROOT
 from torchsph.io import read_snapshot
 
-DATASETS = {"position", "velocity", "density", "pressure", "temperature", "peak_temperature", "phase", "id", "body"}
+DATASETS = {"position", "velocity", "density", "pressure", "mass", "temperature", "peak_temperature", "phase", "id", "body"}
 
 
 def test_cli_run_writes_outputs(tmp_path):

@@ -1,17 +1,14 @@
 """Deposition scene: the fed wire, the sources, the active set, restarts, case errors."""
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 
 from torchsph import checkpoint as ckpt
-from torchsph.config import CaseError, load_case, validate
+from torchsph.config import CaseError, load_case
 from torchsph.deposition import WIRE, measure
 from torchsph.runner import make_simulation, run_steps
-from torchsph.state import Phase
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE = ROOT / "cases" / "perpendicular_350W"

@@ -207,11 +207,12 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
     added = (mass_bin - sub_bin) / (rho0 * bin_m)
     centres = lo + (torch.arange(nb, dtype=m.dtype) + 0.5) * bin_m
     hot = state.T > T_liquidus
-    pool = {}
+    fused = state.T_peak > T_liquidus  # has been liquid: the fusion zone so far
+    pool = {"fused_volume_m3": float((m[fused] / state.rho[fused]).sum())}
     if bool(hot.any()):
         xp = x[hot]
         ext = (xp.max(0).values - xp.min(0).values).tolist()
-        pool = {"length_m": ext[0], "width_m": ext[1], "depth_below_top_m": max(0.0, -float(xp[:, 2].min())),
+        pool |= {"length_m": ext[0], "width_m": ext[1], "depth_below_top_m": max(0.0, -float(xp[:, 2].min())),
                 "volume_m3": float((m[hot] / state.rho[hot]).sum())}
     feeder = info["feeder"]
     fed = rho0 * feeder.area * V_wire * t

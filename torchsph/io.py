@@ -18,6 +18,7 @@ DATASETS = {
     "velocity": ("v", "Vector"),
     "density": ("rho", "Scalar"),
     "pressure": ("p", "Scalar"),
+    "mass": ("m", "Scalar"),
     "temperature": ("T", "Scalar"),
     "peak_temperature": ("T_peak", "Scalar"),
     "phase": ("phase", "Scalar"),

@@ -101,7 +101,8 @@ def physics_plan(sim: Simulation) -> dict:
                  "marangoni": sf is not None and sf.marangoni_on,
                  "recoil": sf is not None and sf.prm.recoil,
                  "active_set": (f"on (tolerance {sim.active_set.tol:g} K)" if sim.active_set is not None
-                                else "off")})
+                                else "off"),
+                 "conduction_reuse": sim.cond_reuse if sim.thermal is not None else None})
     return plan
 
 

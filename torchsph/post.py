@@ -1,0 +1,373 @@
+"""Post-processing of a run's HDF5 snapshots: melt pool, bead geometry, the fusion-zone
+section, solidification data (ExaCA CSV) and PyVista renders.
+
+    python -m torchsph.post RUN_DIR [--section X_M] [--exaca] [--render] [--gif]
+
+Geometry works on particles: a particle stands for a cube of side dx around its centre, so
+an extent of particle centres plus dx is the extent of the material. Frames: the deposition
+scene's substrate moves along +x with V_sub; bead measures are in the substrate frame
+x0 = x - V_sub t, with the original substrate top at z = 0. Everything here reads numpy
+arrays (no torch state), so it also works on snapshots copied off a GPU machine.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .io import read_snapshot
+
+SOLID, WIRE = 2, 2  # phase code of rigid solid; body tag of the wire
+
+
+# --- loading ----------------------------------------------------------------------
+def load_run(run_dir: str | Path) -> tuple[dict, list[tuple[float, Path]]]:
+    """The resolved case (config.json) and the snapshots [(t, path)] in time order."""
+    run_dir = Path(run_dir)
+    cfg = json.loads((run_dir / "config.json").read_text())
+    snaps = []
+    for p in sorted(run_dir.glob("snap_*.h5")):
+        snaps.append((float(read_snapshot(p)["time"]), p))
+    return cfg, sorted(snaps)
+
+
+def volumes(snap: dict, cfg: dict | None = None) -> np.ndarray:
+    """Particle volumes m / rho (snapshots without masses: dx^3 from the case)."""
+    if "mass" in snap:
+        return snap["mass"] / snap["density"]
+    dx = cfg["scene"]["dx_m"]
+    return np.full(snap["density"].shape, dx**3)
+
+
+def substrate_x(snap: dict, cfg: dict) -> np.ndarray:
+    """x in the substrate frame (x - V_sub t; V_sub = 0 for scenes that do not travel)."""
+    v = cfg["scene"].get("substrate_velocity_m_s") or [0.0, 0.0, 0.0]
+    return snap["position"][:, 0] - v[0] * float(snap["time"])
+
+
+# --- melt pool ----------------------------------------------------------------------
+def melt_pool(snap: dict, T_liquidus: float, dx: float, top: float = 0.0, vol=None) -> dict:
+    """Length (x), width (y), depth below ``top`` and volume of the liquid (T > T_L), and
+    the peak temperature. Extents are of the particles' cubes (centres +- dx/2)."""
+    T = snap["temperature"]
+    x = snap["position"]
+    liquid = T > T_liquidus
+    out = {"time_s": float(snap["time"]), "peak_temperature_K": float(T.max()), "n_liquid": int(liquid.sum())}
+    if not liquid.any():
+        return out | {"length_m": 0.0, "width_m": 0.0, "depth_m": 0.0, "volume_m3": 0.0}
+    p = x[liquid]
+    vol = np.full(T.shape, dx**3) if vol is None else vol
+    return out | {"length_m": float(np.ptp(p[:, 0]) + dx), "width_m": float(np.ptp(p[:, 1]) + dx),
+                  "depth_m": float(max(0.0, top - (p[:, 2].min() - 0.5 * dx))),
+                  "volume_m3": float(vol[liquid].sum())}
+
+
+def melt_pool_history(run_dir: str | Path) -> list[dict]:
+    cfg, snaps = load_run(run_dir)
+    TL, dx = cfg["thermal"]["liquidus_K"], cfg["scene"]["dx_m"]
+    out = []
+    for _, p in snaps:
+        s = read_snapshot(p)
+        out.append(melt_pool(s, TL, dx, vol=volumes(s, cfg)))
+    return out
+
+
+# --- bead geometry --------------------------------------------------------------------
+def bead_profile(snap: dict, cfg: dict, T_liquidus: float | None = None, x0=None, vol=None) -> dict:
+    """Bead geometry per substrate-frame column of width dx: width (y extent of the material
+    above the original top z = 0), height (top of that material), penetration (depth below
+    z = 0 of the fusion line: the deepest particle whose peak temperature passed T_L), and
+    the added cross-section (volume above the top minus the substrate volume missing below
+    it, per unit length). The solid wire is not part of the deposit."""
+    sc = cfg["scene"]
+    dx = sc["dx_m"]
+    TL = cfg["thermal"]["liquidus_K"] if T_liquidus is None else T_liquidus
+    x0 = substrate_x(snap, cfg) if x0 is None else x0
+    pos = snap["position"]
+    vol = volumes(snap, cfg) if vol is None else vol
+    deposit = ~((snap["body"] == WIRE) & (snap["phase"] == SOLID))
+    lo = x0[deposit].min()
+    k = np.floor((x0 - lo) / dx + 0.5).astype(np.int64)  # columns centred on the lattice
+    nb = int(k[deposit].max()) + 1
+    centres = lo + np.arange(nb) * dx
+    above = deposit & (pos[:, 2] > 0)
+    below = deposit & (pos[:, 2] <= 0)
+    width = np.zeros(nb)
+    height = np.zeros(nb)
+    pen = np.zeros(nb)
+    ka = k[above]
+    if ka.size:
+        ymin = np.full(nb, np.inf)
+        ymax = np.full(nb, -np.inf)
+        np.minimum.at(ymin, ka, pos[above, 1])
+        np.maximum.at(ymax, ka, pos[above, 1])
+        has = np.isfinite(ymin)
+        width[has] = ymax[has] - ymin[has] + dx
+        np.maximum.at(height, ka, pos[above, 2] + 0.5 * dx)
+    fused = below & (snap["peak_temperature"] > TL)
+    if fused.any():
+        np.maximum.at(pen, k[fused], -pos[fused, 2] + 0.5 * dx)
+    v_above = np.bincount(ka, vol[above], minlength=nb)
+    v_below = np.bincount(k[below], vol[below], minlength=nb)
+    counts = sc.get("substrate_size_m")
+    if counts is not None:  # the substrate's own volume per column, from the case
+        full = round(counts[1] / dx) * round(counts[2] / dx) * dx**3
+    else:
+        full = np.median(v_below[v_below > 0])
+    area = (v_above - np.maximum(full - v_below, 0.0)) / dx
+    return {"x0_m": centres, "width_m": width, "height_m": height, "penetration_m": pen,
+            "added_area_m2": area}
+
+
+def steady_average(profile: dict, x_lo: float, x_hi: float) -> dict:
+    """Mean of each bead measure over the columns with x_lo <= x0 <= x_hi."""
+    sel = (profile["x0_m"] >= x_lo) & (profile["x0_m"] <= x_hi)
+    out = {"x_range_m": [x_lo, x_hi], "columns": int(sel.sum())}
+    for key in ("width_m", "height_m", "penetration_m", "added_area_m2"):
+        out[key] = float(profile[key][sel].mean()) if sel.any() else float("nan")
+    return out
+
+
+def default_steady_range(snap: dict, cfg: dict, start_skip: float = 2.0e-3, pool: float = 2.5e-3):
+    """Substrate-frame x range behind the wire that has solidified and is past the start."""
+    V = cfg["scene"]["substrate_velocity_m_s"][0]
+    return -V * float(snap["time"]) + pool, -start_skip
+
+
+# --- transverse section -----------------------------------------------------------------
+def section(snap: dict, cfg: dict, x0: float, png: str | Path | None = None, title: str = "") -> dict:
+    """The transverse section at substrate-frame x0 (the thesis's Fig. 6.6): the particles of
+    the column at x0, coloured by peak temperature, with the fusion line (the T_L contour
+    of the peak temperature) and the original substrate top; returns its numbers."""
+    dx = cfg["scene"]["dx_m"]
+    TL = cfg["thermal"]["liquidus_K"]
+    xs = substrate_x(snap, cfg)
+    prof = bead_profile(snap, cfg)
+    j = int(np.argmin(np.abs(prof["x0_m"] - x0)))
+    nums = {k: float(prof[k][j]) for k in ("width_m", "height_m", "penetration_m", "added_area_m2")}
+    nums["x0_m"] = float(prof["x0_m"][j])
+    if png is not None:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        sel = (np.abs(xs - nums["x0_m"]) < 0.5 * dx) & ~((snap["body"] == WIRE) & (snap["phase"] == SOLID))
+        y, z, Tp = snap["position"][sel, 1], snap["position"][sel, 2], snap["peak_temperature"][sel]
+        fig, ax = plt.subplots(figsize=(6, 3.2), dpi=110)
+        sc_ = ax.scatter(y * 1e3, z * 1e3, c=Tp, s=14, cmap="inferno", marker="s")
+        if sel.sum() > 3 and Tp.max() > TL > Tp.min():
+            ax.tricontour(y * 1e3, z * 1e3, Tp, levels=[TL], colors="cyan", linewidths=1.5)
+        ax.axhline(0.0, color="w", lw=0.8, ls="--")
+        ax.set_aspect("equal")
+        ax.set_xlabel("y, mm")
+        ax.set_ylabel("z, mm")
+        ax.set_facecolor("0.85")
+        fig.colorbar(sc_, ax=ax, label="peak temperature, K")
+        ax.set_title(title or f"section x0 = {nums['x0_m'] * 1e3:.2f} mm, t = {float(snap['time']):.3f} s; "
+                     "cyan: fusion line (T_L)", fontsize=8)
+        fig.tight_layout()
+        fig.savefig(png)
+        plt.close(fig)
+    return nums
+
+
+# --- solidification: cooling rate, G, R, ExaCA --------------------------------------------
+def _aligned(snaps: list[dict]):
+    """Per-snapshot arrays aligned on particle id (rows of ids missing from a snapshot: NaN)."""
+    ids = np.unique(np.concatenate([s["id"] for s in snaps]))
+    n, K = ids.size, len(snaps)
+    T = np.full((K, n), np.nan)
+    X = np.full((K, n, 3), np.nan)
+    for k, s in enumerate(snaps):
+        r = np.searchsorted(ids, s["id"])
+        T[k, r] = s["temperature"]
+        X[k, r] = s["position"]
+    return ids, T, X
+
+
+def temperature_gradient(x: np.ndarray, T: np.ndarray, radius: float) -> np.ndarray:
+    """Least-squares gradient of T over the neighbours within ``radius`` (cell list), (N, 3)."""
+    import torch
+
+    from .neighbors import Domain, build_pairs
+
+    xt = torch.as_tensor(x, dtype=torch.float64)
+    i, j = build_pairs(xt, radius, Domain([0.0] * 3, [1.0] * 3, [False] * 3))
+    i, j = i.numpy(), j.numpy()
+    d = x[j] - x[i]
+    dT = T[j] - T[i]
+    A = np.zeros((x.shape[0], 3, 3))
+    b = np.zeros((x.shape[0], 3))
+    np.add.at(A, i, d[:, :, None] * d[:, None, :])
+    np.add.at(b, i, d * dT[:, None])
+    A += np.eye(3) * 1e-30
+    ok = np.linalg.det(A) > 0
+    g = np.zeros_like(b)
+    g[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+    return g
+
+
+def solidification(snaps: list[dict], T_liquidus: float, dx: float, V_sub: float = 0.0) -> dict:
+    """Where each particle last crossed the liquidus while cooling: the crossing time tl
+    (linear in time between the two snapshots around it), the melting time tm (its first
+    upward crossing), the cooling rate cr = -dT/dt over that interval, the thermal gradient
+    G = |grad T| at the snapshot nearest tl, and the solidification rate R = cr / G.
+    Positions are in the substrate frame at tl. Vectorised over particles (a loop over
+    snapshots only)."""
+    t = np.array([float(s["time"]) for s in snaps])
+    ids, T, X = _aligned(snaps)
+    K, n = T.shape
+    above = T >= T_liquidus
+    down = above[:-1] & (T[1:] < T_liquidus)  # (K-1, n) cooling crossings
+    up = (~above[:-1]) & (T[1:] >= T_liquidus) & np.isfinite(T[:-1])
+    has = down.any(0)
+    last = (K - 2) - np.argmax(down[::-1], axis=0)  # last cooling interval
+    cols = np.arange(n)
+    T0, T1 = T[last, cols], T[last + 1, cols]
+    t0, t1 = t[last], t[last + 1]
+    frac = (T0 - T_liquidus) / np.where(T0 > T1, T0 - T1, 1.0)
+    tl = t0 + frac * (t1 - t0)
+    cr = (T0 - T1) / (t1 - t0)
+    first_up = np.argmax(up, axis=0)
+    tm = np.where(up.any(0), t[first_up] + (T_liquidus - T[first_up, cols]) /
+                  np.where(T[first_up + 1, cols] > T[first_up, cols], T[first_up + 1, cols] - T[first_up, cols], 1.0)
+                  * (t[first_up + 1] - t[first_up]), t[0])
+    pos = X[last, cols] + frac[:, None] * (X[last + 1, cols] - X[last, cols])
+    pos[:, 0] -= V_sub * tl
+    G = np.full(n, np.nan)
+    near = np.where(frac < 0.5, last, last + 1)
+    for k in np.unique(near[has]):  # a loop over snapshots
+        ok = np.isfinite(T[k])
+        g = temperature_gradient(X[k][ok], T[k][ok], 2.01 * dx)
+        gk = np.full(n, np.nan)
+        gk[np.nonzero(ok)[0]] = np.linalg.norm(g, axis=1)
+        sel = has & (near == k)
+        G[sel] = gk[sel]
+    R = cr / np.where(G > 0, G, np.nan)
+    return {"id": ids[has], "x": pos[has, 0], "y": pos[has, 1], "z": pos[has, 2], "tm": tm[has],
+            "tl": tl[has], "cr": cr[has], "G": G[has], "R": R[has]}
+
+
+def write_exaca_csv(path: str | Path, sol: dict, dx: float):
+    """ExaCA FromFile temperature data: header ``x,y,z,tm,tl,cr``; x, y, z in metres snapped
+    to the Cartesian grid of spacing dx (ExaCA's cell size), tm, tl in s, cr in K/s. Where
+    several particles fall in one cell the last to solidify is kept."""
+    xyz = np.stack([sol["x"], sol["y"], sol["z"]], 1)
+    cell = np.round(xyz / dx).astype(np.int64)
+    order = np.argsort(sol["tl"], kind="stable")[::-1]  # latest first: np.unique keeps the first
+    _, first = np.unique(cell[order], axis=0, return_index=True)
+    keep = order[first]
+    keep = keep[np.lexsort((cell[keep, 0], cell[keep, 1], cell[keep, 2]))]
+    rows = np.column_stack([cell[keep] * dx, sol["tm"][keep], sol["tl"][keep], sol["cr"][keep]])
+    np.savetxt(path, rows, delimiter=",", header="x,y,z,tm,tl,cr", comments="", fmt="%.9g")
+    return rows.shape[0]
+
+
+# --- renders -----------------------------------------------------------------------------
+def render(snap: dict, png: str | Path, cfg: dict | None = None, what: str = "temperature",
+           window=(900, 600)):
+    """Off-screen PyVista render of one snapshot: the particles as points coloured by
+    temperature (what = "temperature": the visible ones are the free surface), or the melt
+    velocity as arrows on the liquid particles over the material in grey (what = "velocity")."""
+    import pyvista as pv
+
+    pv.OFF_SCREEN = True
+    pos = snap["position"] * 1e3  # mm
+    p = pv.Plotter(off_screen=True, window_size=list(window))
+    if what == "temperature":
+        cloud = pv.PolyData(pos)
+        cloud["T, K"] = snap["temperature"]
+        p.add_mesh(cloud, scalars="T, K", cmap="inferno", point_size=9, render_points_as_spheres=True)
+    else:
+        liquid = snap["phase"] == 0
+        p.add_mesh(pv.PolyData(pos[~liquid]), color="lightgrey", point_size=4, render_points_as_spheres=True)
+        if liquid.any():
+            cloud = pv.PolyData(pos[liquid])
+            cloud["u, m/s"] = np.linalg.norm(snap["velocity"][liquid], axis=1)
+            cloud["vec"] = snap["velocity"][liquid]
+            scale = 0.5 / max(float(cloud["u, m/s"].max()), 1e-12)
+            p.add_mesh(cloud.glyph(orient="vec", scale="u, m/s", factor=scale), scalars="u, m/s", cmap="viridis")
+    p.add_text(f"t = {float(snap['time']) * 1e3:.1f} ms", font_size=10)
+    p.camera_position = "iso"
+    p.camera.azimuth = 30
+    p.camera.zoom(1.4)
+    p.show_axes()
+    p.screenshot(str(png))
+    p.close()
+
+
+def timelapse(run_dir: str | Path, path: str | Path, what: str = "temperature", fps: int = 5):
+    """GIF (or MP4, by the suffix) of renders of every snapshot, via imageio."""
+    import tempfile
+
+    import imageio.v2 as imageio
+
+    cfg, snaps = load_run(run_dir)
+    frames = []
+    with tempfile.TemporaryDirectory() as td:
+        for k, (_, p) in enumerate(snaps):
+            f = Path(td) / f"f{k:05d}.png"
+            render(read_snapshot(p), f, cfg, what, window=(640, 420))
+            frames.append(imageio.imread(f))
+    imageio.mimsave(path, frames, duration=1.0 / fps) if str(path).endswith(".gif") else \
+        imageio.mimsave(path, frames, fps=fps)
+
+
+# --- command line ---------------------------------------------------------------------------
+def summarize(run_dir: str | Path, section_x: float | None = None, exaca: bool = False,
+              render_png: bool = False, gif: bool = False) -> dict:
+    run_dir = Path(run_dir)
+    cfg, snaps = load_run(run_dir)
+    out_dir = run_dir / "post"
+    out_dir.mkdir(exist_ok=True)
+    last = read_snapshot(snaps[-1][1])
+    res = {"run": str(run_dir), "melt_pool": melt_pool_history(run_dir)}
+    if cfg["scene"]["type"] == "deposition":
+        prof = bead_profile(last, cfg)
+        lo, hi = default_steady_range(last, cfg)
+        res["bead_steady"] = steady_average(prof, lo, hi)
+        res["bead_profile"] = {k: np.asarray(v).tolist() for k, v in prof.items()}
+        sx = section_x if section_x is not None else 0.5 * (lo + hi)
+        res["section"] = section(last, cfg, sx, out_dir / "section.png")
+    if exaca:
+        V = (cfg["scene"].get("substrate_velocity_m_s") or [0.0])[0]
+        sol = solidification([read_snapshot(p) for _, p in snaps], cfg["thermal"]["liquidus_K"],
+                             cfg["scene"]["dx_m"], V)
+        res["exaca_rows"] = write_exaca_csv(out_dir / "exaca.csv", sol, cfg["scene"]["dx_m"])
+    if render_png:
+        render(last, out_dir / "temperature.png", cfg, "temperature")
+        render(last, out_dir / "velocity.png", cfg, "velocity")
+    if gif:
+        timelapse(run_dir, out_dir / "temperature.gif")
+    (out_dir / "post.json").write_text(json.dumps(res, indent=1, default=float) + "\n")
+    return res
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m torchsph.post", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("run", type=Path, help="a run's output folder")
+    ap.add_argument("--section", type=float, default=None, metavar="X0_M",
+                    help="substrate-frame x of the transverse section (default: mid steady range)")
+    ap.add_argument("--exaca", action="store_true", help="write post/exaca.csv (x,y,z,tm,tl,cr)")
+    ap.add_argument("--render", action="store_true", help="PNG renders of the last snapshot (PyVista)")
+    ap.add_argument("--gif", action="store_true", help="time-lapse GIF (PyVista + imageio)")
+    a = ap.parse_args(argv)
+    res = summarize(a.run, a.section, a.exaca, a.render, a.gif)
+    mp = res["melt_pool"][-1]
+    print(f"melt pool at t = {mp['time_s']:.4g} s: length {mp['length_m'] * 1e3:.3f} mm, width "
+          f"{mp['width_m'] * 1e3:.3f} mm, depth {mp['depth_m'] * 1e3:.3f} mm, volume "
+          f"{mp['volume_m3'] * 1e9:.4f} mm^3, peak {mp['peak_temperature_K']:.0f} K")
+    if "bead_steady" in res:
+        b = res["bead_steady"]
+        print(f"bead over x0 in [{b['x_range_m'][0] * 1e3:.2f}, {b['x_range_m'][1] * 1e3:.2f}] mm "
+              f"({b['columns']} columns): width {b['width_m'] * 1e3:.3f} mm, height {b['height_m'] * 1e3:.3f} mm, "
+              f"penetration {b['penetration_m'] * 1e3:.3f} mm, added area {b['added_area_m2'] * 1e6:.3f} mm^2")
+    print(f"wrote {Path(a.run) / 'post'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
