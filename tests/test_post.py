@@ -109,3 +109,18 @@ def test_render_png(tmp_path):
     for f in ("t.png", "v.png"):
         img = pv.read(str(tmp_path / f))
         assert img.n_points == 200 * 150
+
+
+def test_section_picture_and_numbers(tmp_path):
+    """The transverse section of the synthetic bead: a PNG, and the numbers of that column
+    (width 2R, penetration P within one spacing)."""
+    pytest.importorskip("matplotlib")
+    R, P = 0.5e-3, 0.3e-3
+    block = lattice((0, -1.5e-3, -1e-3), (2e-3, 1.5e-3, 0))
+    cand = lattice((0, -R, 0), (2e-3, R, R))
+    x = np.concatenate([block, cand[cand[:, 1] ** 2 + cand[:, 2] ** 2 < R * R]])
+    Tp = np.where(x[:, 1] ** 2 / R**2 + x[:, 2] ** 2 / P**2 < 1, 2000.0, 500.0)
+    nums = post.section(snap_of(x, Tp=Tp), cfg_of([2e-3, 3e-3, 1e-3]), 1.0e-3, tmp_path / "s.png")
+    assert (tmp_path / "s.png").stat().st_size > 5000
+    assert abs(nums["width_m"] - 2 * R) <= DX and abs(nums["penetration_m"] - P) <= DX
+    assert abs(nums["x0_m"] - 1.0e-3) <= DX / 2

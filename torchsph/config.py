@@ -147,6 +147,8 @@ NUMERICS = {
     "conduction_reuse": Key("float", default=0.1, ge=0, le=1,
                             doc="multi-rate conduction: re-evaluate it once per this fraction of the thermal "
                                 "limit (0 = every step)"),
+    "rebalance_every": Key("int", default=10, ge=0,
+                           doc="MPI: move slab boundaries to equal measured cost every this many migrations (0 = never)"),
     "active_tolerance_K": Key("float", default=1.0, gt=0,
                               doc="|T - ambient| below which solid far from heat is left out"),
 }

@@ -22,9 +22,11 @@ DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
 def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
-                    scene: Scene | None = None) -> tuple[Scene, Simulation]:
+                    scene: Scene | None = None, comm=None) -> tuple[Scene, Simulation]:
     """Scene and solver for a validated configuration (see :func:`config.load_case`); a
-    study may pass the ``scene`` already built (and adjusted)."""
+    study may pass the ``scene`` already built (and adjusted). ``comm``: a domain
+    decomposition (``parallel.slab.SlabComm``); the scene is then built whole on every
+    process and cut to this process's slab and halo."""
     run, nm, fl = cfg["run"], cfg["numerics"], cfg["fluid"]
     dtype = DTYPES[run["dtype"]] if dtype is None else dtype
     device = run["device"] if device is None else device
@@ -32,6 +34,12 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
         scene = build_scene(cfg, dtype=dtype, device=device)
     dim = cfg["scene"]["dim"]
     h = nm["h_over_dx"] * scene.dx
+    if comm is not None:
+        from dataclasses import fields as dc_fields
+        from .state import ParticleState
+        whole = {f"state.{f.name}": getattr(scene.state, f.name) for f in dc_fields(scene.state)}
+        local = comm.distribute(whole, first=True)
+        scene.state = ParticleState(**{k[6:]: v.to(scene.state.device) for k, v in local.items()})
     kernel = make_kernel(nm["kernel"], dim)
     compile = nm["compile"] if compile is None else compile
     fluid = thermal = None
@@ -80,7 +88,9 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
                      phase_change=(cfg["thermal"]["solidus_K"], cfg["thermal"]["liquidus_K"],
                                    cfg["thermal"]["mushy_drag_1_s"]) if phase_change else None,
                      surface=surface, active=active, feeder=scene.info.get("feeder"),
-                     cond_reuse=nm["conduction_reuse"])
+                     cond_reuse=nm["conduction_reuse"], comm=comm)
+    if comm is not None:
+        comm.check(sim)
     return scene, sim
 
 

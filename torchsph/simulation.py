@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from .active import ActiveSet
+from .comm import SerialComm
 from .fluid import WeaklyCompressibleFluid, neighbour_average
 from .surface import SurfaceForces
 from .thermal import Conduction
@@ -111,14 +112,16 @@ class Simulation:
                  damping_time: float = 0.0, thermal: Conduction | None = None,
                  phase_change: tuple[float, float, float] | None = None,
                  surface: SurfaceForces | None = None, active: ActiveSet | None = None,
-                 feeder=None, cond_reuse: float = 0.0):
+                 feeder=None, cond_reuse: float = 0.0, comm=None):
         """``fluid`` and ``thermal`` are the physics a scene declares; either may be None
         and then costs nothing (a conduction study has no momentum, a flow no energy).
         ``active`` leaves cold quiescent solid out of the work (:mod:`torchsph.active`);
         ``feeder`` adds particles as the run goes (``new_particles(sim, t)``, e.g. a fed
         wire). ``cond_reuse`` = f > 0: multi-rate conduction, see :meth:`_reuse_conduction`."""
         self.state = state
+        self.comm = comm if comm is not None else SerialComm()  # decomposition hooks (no-ops in one process)
         self.cond_reuse = cond_reuse
+        self._rebuilt = False  # the last step rebuilt the neighbour list
         self.active_set = active if (active is not None and not domain.any_periodic) else None
         self.feeder = feeder
         self.plan = PlanStats()
@@ -168,7 +171,8 @@ class Simulation:
         if thermal is not None:
             P, self._heat = thermal.power(state, state.T, 0.0)
             self.dTdt = P / state.m
-            self._E0 = thermal.energy(state, thermal.prm, 0.0)
+            self._E0 = thermal.energy(state, thermal.prm, 0.0, self.comm.owned(self))
+        self.comm.end_step(self)  # ghosts (if any) take their owners' values
         self.info = self._measure()
         self._check_finite(state.v)
         if dt_fixed is not None:
@@ -197,8 +201,14 @@ class Simulation:
     # --- neighbours ---------------------------------------------------------
     def _refresh_pairs(self, force: bool = False):
         subset = self._work_set if self.active_set is not None else None
-        if self.nl.update(self.state.x, force=force or self._stale, subset=subset):
+        force = force or self._stale
+        if not force and self.comm.size > 1:  # all processes rebuild at the same steps
+            force = self.comm.any(self.nl.needs_rebuild(self.state.x))
+            if not force:
+                return
+        if self.nl.update(self.state.x, force=force, subset=subset):
             self._stale = False
+            self._rebuilt = True
             self._select()
 
     def _work_set(self) -> torch.Tensor:
@@ -218,6 +228,7 @@ class Simulation:
             if phys is not None:
                 phys.select_pairs(self.state, self.nl.nb, self.nl.mask)
         if self.thermal is not None:
+            self.thermal.owned = self.comm.owned(self)
             self.thermal.select_pairs(self.state, self.nl.nb, self.nl.mask, active=self.active_mask,
                                       work=self.active_set.work if self.active_set is not None else None)
         self.plan.select(self)
@@ -228,18 +239,21 @@ class Simulation:
 
     # --- time-step control --------------------------------------------------
     def _measure(self):
+        own = self.comm.owned(self)
         if self.fluid is None:
-            return {"vmax": 0.0, "amax": 0.0, "rho_min": float(self.state.rho.min()), "compression": 0.0}
-        fm = self.fluid_mask.unsqueeze(-1)
+            rho = self.state.rho if own is None else self.state.rho[own]
+            vals = [0.0, 0.0, float(rho.min()) if rho.numel() else float("inf"), 0.0]
+            return dict(zip(("vmax", "amax", "rho_min", "compression"), self.comm.reduce_measure(vals)))
+        fmask = self.fluid_mask if own is None else self.fluid_mask & own
+        fm = fmask.unsqueeze(-1)
         v = torch.where(fm, self.state.v, torch.zeros_like(self.state.v))
         a = torch.where(fm, self.dvdt, torch.zeros_like(self.dvdt))
-        rho_f = torch.where(self.fluid_mask, self.state.rho,
-                            torch.full_like(self.state.rho, float("inf")))
-        comp = torch.where(self.fluid_mask, (self.state.rho / self.fluid.prm.rho0 - 1.0).abs(),
+        rho_f = torch.where(fmask, self.state.rho, torch.full_like(self.state.rho, float("inf")))
+        comp = torch.where(fmask, (self.state.rho / self.fluid.prm.rho0 - 1.0).abs(),
                            torch.zeros_like(self.state.rho))
         vals = torch.stack([(v * v).sum(-1).max().sqrt(), (a * a).sum(-1).max().sqrt(),
                             rho_f.min(), comp.max()]).tolist()
-        return dict(zip(("vmax", "amax", "rho_min", "compression"), vals))
+        return dict(zip(("vmax", "amax", "rho_min", "compression"), self.comm.reduce_measure(vals)))
 
     def limits(self) -> dict[str, float]:
         """Every time-step limit of SPEC §4 that applies to this scene (seconds)."""
@@ -259,7 +273,8 @@ class Simulation:
             if self.thermal.losses.evaporation:
                 lim["evaporation"] = self.thermal.evaporation_limit(self.state)
                 lim["heating"] = self._heating_limit()
-        return {k: v for k, v in lim.items() if math.isfinite(v)} or {"none": math.inf}
+        lim = self.comm.merge_limits({k: v for k, v in lim.items() if math.isfinite(v)})
+        return lim or {"none": math.inf}
 
     def _heating_limit(self) -> float:
         """0.1 c_p T / |dh/dt| over the non-wall particles: at most a 10 % temperature change
@@ -273,6 +288,7 @@ class Simulation:
 
     def choose_dt(self) -> tuple[float, str]:
         lim = self.limits()
+        self._lim_cache = (self.step, self.state.n, lim)  # advance() reuses them (same state)
         name = min(lim, key=lim.get)
         if self.dt_fixed is not None:
             return self.dt_fixed, "fixed"
@@ -295,10 +311,14 @@ class Simulation:
     # --- one step -----------------------------------------------------------
     def advance(self, dt: float | None = None, limit: str = "given") -> StepInfo:
         """One kick-drift-kick step; dt defaults to the automatic (or fixed) step."""
-        self._pre_limits = self.limits()  # of the last good state, for a diagnosis
+        cache, self._lim_cache = getattr(self, "_lim_cache", None), None
+        self._pre_limits = (cache[2] if cache is not None and cache[:2] == (self.step, self.state.n)
+                            else self.limits())  # of the last good state, for a diagnosis
         self._T_prev = self.state.T
         if dt is None:
             dt, limit = self.choose_dt()
+        self.comm.begin_step(self)  # migration and new ghosts after a rebuild (decomposed runs)
+        self._rebuilt = False
         s = self.state
         fm = self.fluid_mask.unsqueeze(-1)
         a = self.dvdt  # zero for walls: they keep their prescribed velocity
@@ -357,8 +377,9 @@ class Simulation:
         self.step += 1
         if self.phase_change is not None:
             self._update_phases(dt)
-        self.info = self._measure()
         self._check_finite(v_tilde, dt, limit)
+        self.comm.end_step(self)
+        self.info = self._measure()
         if self.active_set is not None and self.active_set.stale(s, getattr(self.thermal, "lit", None)):
             self._stale = True  # heat reached the frontier band: refresh at the next rebuild point
         self.plan.add(self)
@@ -377,6 +398,43 @@ class Simulation:
             return False
         lim = self._pre_limits.get("thermal", 0.0)
         return t_new - th.t_cond <= self.cond_reuse * lim
+
+    # --- per-particle arrays (what a decomposition moves with a particle) -------
+    def particle_arrays(self) -> dict[str, torch.Tensor]:
+        """Every per-particle array the step carries from one step to the next, by name
+        (None entries omitted): the state, the rates, the Verlet reference positions and the
+        physics' per-particle caches."""
+        from dataclasses import fields as dc_fields
+
+        d = {f"state.{f.name}": getattr(self.state, f.name) for f in dc_fields(self.state)}
+        d["dvdt"], d["drhodt"] = self.dvdt, self.drhodt
+        d["dTdt"] = self.dTdt
+        d["nl.x_ref"] = self.nl.x_ref
+        th = self.thermal
+        if th is not None:
+            d.update({"th.k": th.k, "th.T_set": th.T_set, "th._zeta": th._zeta, "th._area": th._area,
+                      "th.normal": getattr(th, "normal", None), "th.q_cond": th.q_cond})
+        sf = self.surface_model
+        if sf is not None:
+            d.update({"sf.normal": sf.normal, "sf.kappa": sf.kappa})
+        return {k: v for k, v in d.items() if v is not None}
+
+    def set_particle_arrays(self, d: dict[str, torch.Tensor]):
+        """Put arrays named as in :meth:`particle_arrays` back (after a permutation)."""
+        st = {k[6:]: v for k, v in d.items() if k.startswith("state.")}
+        if st:
+            self.state = ParticleState(**st)
+        for k, v in d.items():
+            if k.startswith("state."):
+                continue
+            obj, name = {"dvdt": (self, "dvdt"), "drhodt": (self, "drhodt"), "dTdt": (self, "dTdt"),
+                         "nl.x_ref": (self.nl, "x_ref")}.get(k, (None, None))
+            if obj is None:
+                owner, name = k.split(".", 1)
+                obj = self.thermal if owner == "th" else self.surface_model
+            setattr(obj, name, v)
+        self.fluid_mask = self.state.phase == Phase.FLUID
+        self.n_fluid = int(self.fluid_mask.sum())
 
     def add_particles(self, new: ParticleState):
         """Append particles (e.g. a fed wire's new layer) at rest relative to their body,
@@ -436,6 +494,7 @@ class Simulation:
         melt = (s.phase == Phase.SOLID) & (s.T > T_L)
         freeze = (s.phase == Phase.FLUID) & (s.T < T_S)
         n_melt, n_freeze = torch.stack([melt.sum(), freeze.sum()]).tolist()
+        g_melt, g_freeze = self.comm.sum([n_melt, n_freeze])  # every process re-selects together
         if n_freeze:  # join the body it rests on and take that body's velocity
             rows = torch.nonzero(freeze).squeeze(1)
             b = self._resting_body(rows)
@@ -446,7 +505,7 @@ class Simulation:
         if n_melt:  # melt leaves its body
             s.phase = torch.where(melt, torch.full_like(s.phase, int(Phase.FLUID)), s.phase)
             s.body = torch.where(melt, torch.zeros_like(s.body), s.body)
-        if n_melt or n_freeze:
+        if g_melt or g_freeze:
             self.fluid_mask = s.phase == Phase.FLUID
             self.n_fluid = int(self.fluid_mask.sum())
             self._select()
@@ -471,8 +530,12 @@ class Simulation:
         stored energy sum m h(T), and the residual stored - (sum of the flows)."""
         if self.thermal is None:
             return {}
-        stored = self.thermal.energy(self.state, self.thermal.prm, 0.0) - self._E0
-        energy = {k: float(v) for k, v in self.energy.items()}
+        own = self.comm.owned(self)
+        st = self.state
+        stored = self.thermal.energy(st, self.thermal.prm, 0.0, own) - self._E0
+        keys = sorted(self.energy)
+        vals = self.comm.sum([stored] + [float(self.energy[k]) for k in keys])
+        stored, energy = vals[0], dict(zip(keys, vals[1:]))
         out = {f"{k}_J": v for k, v in energy.items()}  # gains > 0, losses < 0
         flows = sum(energy.values())
         out["stored_J"] = stored

@@ -319,7 +319,9 @@ class Conduction:
         P = sum(parts.values())
         if per_particle:
             return P, parts
-        totals = {k: v.sum() for k, v in parts.items()}
+        own = getattr(self, "owned", None)  # a decomposed run books its own particles only
+        totals = {k: (v if own is None else torch.where(own, v, torch.zeros_like(v))).sum()
+                  for k, v in parts.items()}
         totals.setdefault("beam", torch.zeros((), dtype=T.dtype, device=T.device))
         return P, totals
 
@@ -393,9 +395,12 @@ class Conduction:
         return 0.5 / lmax if lmax > 0 else math.inf
 
     @staticmethod
-    def energy(state: ParticleState, prm: ThermalParams, T_ref: float) -> float:
-        """Stored energy sum_i m_i h(T_i) (J) relative to T_ref, walls excluded."""
+    def energy(state: ParticleState, prm: ThermalParams, T_ref: float, owned=None) -> float:
+        """Stored energy sum_i m_i h(T_i) (J) relative to T_ref, walls excluded (and, in a
+        decomposed run, particles this process does not own)."""
         inside = state.phase != Phase.WALL
+        if owned is not None:
+            inside = inside & owned
         return float((state.m * enthalpy(state.T, prm, T_ref) * inside).sum())
 
 

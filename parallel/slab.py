@@ -1,0 +1,272 @@
+"""MPI domain decomposition: slabs along x with ghost halos (mpi4py).
+
+Each rank owns the particles of one slab [b_r, b_{r+1}) of x and holds, after its owned
+particles, ghost copies of the particles other ranks own within ``halo`` of its slab. It
+runs the unchanged single-process step on owned + ghosts; at the end of every step each
+ghost takes its owner's values of every per-particle array (``Simulation.particle_arrays``:
+state, rates, Verlet reference, the physics' caches). The halo is thick enough for one
+step's chain of neighbour-dependent stages (``stages`` search radii, plus the Verlet skin
+for the motion between migrations), so owned particles see exactly the neighbours and
+values they would in one process: the decomposed run equals the single-process run up to
+the order of floating-point sums.
+
+All ranks rebuild their neighbour lists at the same steps (a global decision), so the
+per-rebuild caches match the single-process run; at the start of the step after a
+rebuild, particles migrate to the rank owning their slab and the ghost sets are chosen
+anew (the neighbour tables are carried over by particle id). Slab boundaries start at
+equal particle counts and are moved, every ``rebalance_every`` migrations, to equal
+measured cost (per-particle cost weights: fluid, surface, conducting solid, idle solid).
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+import traceback
+
+import numpy as np
+import torch
+from mpi4py import MPI
+
+STATE_PREFIX = "state."
+
+
+def install_abort_hook(comm=None):
+    """An uncaught exception on any rank prints the rank and the error and aborts all ranks
+    (no rank is left waiting in a collective)."""
+    comm = comm or MPI.COMM_WORLD
+
+    def hook(tp, val, tb):
+        sys.stderr.write(f"torchsph rank {comm.Get_rank()}/{comm.Get_size()}: "
+                         + "".join(traceback.format_exception(tp, val, tb)))
+        sys.stderr.flush()
+        comm.Abort(1)
+
+    sys.excepthook = hook
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().cpu().numpy()
+
+
+class SlabComm:
+    """The :class:`torchsph.comm.SerialComm` interface over MPI ranks (see the module doc)."""
+
+    def __init__(self, search: float, skin: float, stages: int = 3, comm=None,
+                 rebalance_every: int = 0, weights: dict | None = None):
+        self.c = comm or MPI.COMM_WORLD
+        self.rank, self.size = self.c.Get_rank(), self.c.Get_size()
+        self.halo = stages * search + skin
+        self.n_owned = 0
+        self.bounds = None  # (size + 1,) slab boundaries in x
+        self.send = []  # per rank: local rows (owned) whose copies are ghosts there
+        self.recv = []  # per rank: (start, stop) of the ghost block received from it
+        self.rebalance_every = rebalance_every
+        self.weights = weights or {"fluid": 4.0, "solid": 1.0}
+        self.n_migrations = 0
+        self.step_time = 0.0  # wall time of the last step on this rank
+        self.imbalance = []  # max / mean step time over ranks, per migration
+        self._owned_cache = (None, None)
+        self._t0 = None
+
+    # --- the SerialComm interface --------------------------------------------------------
+    def owned(self, sim) -> torch.Tensor:
+        n = sim.state.n
+        key = (n, self.n_owned)
+        if self._owned_cache[0] != key:
+            self._owned_cache = (key, torch.arange(n, device=sim.state.device) < self.n_owned)
+        return self._owned_cache[1]
+
+    def reduce_measure(self, vals):
+        v = np.array([vals[0], vals[1], -vals[2], vals[3]], dtype=np.float64)
+        out = np.empty_like(v)
+        self.c.Allreduce(v, out, op=MPI.MAX)
+        return [out[0], out[1], -out[2], out[3]]
+
+    def merge_limits(self, lim):
+        merged = {}
+        for d in self.c.allgather(lim):
+            for k, v in d.items():
+                merged[k] = min(v, merged.get(k, math.inf))
+        return merged
+
+    def any(self, flag: bool) -> bool:
+        return bool(self.c.allreduce(bool(flag), op=MPI.LOR))
+
+    def sum(self, vals):
+        v = np.asarray(vals, dtype=np.float64)
+        out = np.empty_like(v)
+        self.c.Allreduce(v, out, op=MPI.SUM)
+        return out.tolist()
+
+    def check(self, sim):
+        why = []
+        if sim.active_set is not None:
+            why.append("the active set (set numerics.skip_cold_solid = false)")
+        if sim.feeder is not None:
+            why.append("a fed wire")
+        if sim.surface_model is not None:
+            why.append("free-surface forces")
+        if sim.thermal is not None and sim.thermal.beams:
+            why.append("beams (their shadowing is global)")
+        if sim.cond_reuse > 0 and sim.thermal is not None and sim.fluid_model is not None:
+            pass  # multi-rate conduction is a per-particle array + a global time: supported
+        if why:
+            raise ValueError("MPI runs do not yet support " + ", ".join(why))
+
+    def begin_step(self, sim):
+        t = time.perf_counter()
+        if self._t0 is not None:
+            self.step_time = t - self._t0
+        self._t0 = t
+        if sim._rebuilt:
+            self.migrate(sim)
+
+    def end_step(self, sim):
+        self.refresh(sim)
+
+    # --- decomposition ----------------------------------------------------------------------
+    def equal_bounds(self, x: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+        """Slab boundaries at equal (weighted) shares of all ranks' particles along x."""
+        w = np.ones_like(x) if w is None else w
+        xs = np.concatenate(self.c.allgather(x))
+        ws = np.concatenate(self.c.allgather(w))
+        order = np.argsort(xs, kind="stable")
+        cw = np.cumsum(ws[order])
+        b = [-np.inf]
+        for r in range(1, self.size):
+            k = int(np.searchsorted(cw, cw[-1] * r / self.size))
+            k = min(max(k, 0), xs.size - 1)
+            b.append(xs[order][k])
+        return np.array(b + [np.inf])
+
+    def distribute(self, arrays: dict[str, torch.Tensor], first: bool = False):
+        """New local arrays: this rank's owned particles (rows of ``arrays`` it owns now, or
+        with ``first`` the whole replicated set) sent to their slab's rank, then the ghosts.
+        Returns the new arrays; sets n_owned and the send / receive lists."""
+        x = _np(arrays["state.x"])[:, 0]
+        if first:  # every rank holds every particle: take the ones of this slab directly
+            if self.bounds is None:
+                self.bounds = self.equal_bounds(x if self.rank == 0 else x[:0])
+            own = (np.searchsorted(self.bounds, x, side="right") - 1) == self.rank
+            mine = {k: v[torch.as_tensor(own)] for k, v in arrays.items()}
+        else:
+            dest = np.searchsorted(self.bounds, x, side="right") - 1
+            out = [{k: _np(v[torch.as_tensor(dest == q)]) for k, v in arrays.items()} for q in range(self.size)]
+            got = self.c.alltoall(out)
+            mine = {k: torch.as_tensor(np.concatenate([g[k] for g in got])) for k in arrays}
+        order = torch.argsort(mine["state.id"])  # a deterministic order: by particle id
+        mine = {k: v[order] for k, v in mine.items()}
+        self.n_owned = int(mine["state.id"].shape[0])
+        xo = _np(mine["state.x"])[:, 0]
+        self.send, out = [], []
+        for q in range(self.size):
+            if q == self.rank:
+                sel = np.zeros(xo.shape, bool)
+            else:
+                sel = (xo >= self.bounds[q] - self.halo) & (xo < self.bounds[q + 1] + self.halo)
+            rows = np.nonzero(sel)[0]
+            self.send.append(torch.as_tensor(rows))
+            out.append({k: _np(v[torch.as_tensor(rows)]) for k, v in mine.items()})
+        got = self.c.alltoall(out)
+        blocks, self.recv, start = [mine], [], self.n_owned
+        for q, g in enumerate(got):
+            n = g["state.id"].shape[0]
+            self.recv.append((start, start + n))
+            start += n
+            blocks.append({k: torch.as_tensor(g[k]) for k in mine})
+        return {k: torch.cat([b[k].to(mine[k].dtype) for b in blocks]) for k in mine}
+
+    def refresh(self, sim):
+        """Ghost rows take their owners' current values of every per-particle array."""
+        arrays = sim.particle_arrays()
+        out = [{k: _np(v.index_select(0, self.send[q])) for k, v in arrays.items()} if q != self.rank else {}
+               for q in range(self.size)]
+        got = self.c.alltoall(out)
+        changed = {}
+        for q, g in enumerate(got):
+            a, b = self.recv[q]
+            if b == a:
+                continue
+            rows = torch.arange(a, b)
+            for k, v in g.items():
+                base = changed.get(k, arrays[k])
+                changed[k] = base.index_copy(0, rows, torch.as_tensor(v, dtype=base.dtype))
+        if changed:
+            sim.set_particle_arrays(changed)
+
+    def migrate(self, sim):
+        """After a rebuild: particles move to the rank of their slab, ghosts are chosen anew,
+        the neighbour table is carried over by particle id, the caches restored."""
+        self.n_migrations += 1
+        times = self.c.allgather(self.step_time)
+        if max(times) > 0:
+            self.imbalance.append(max(times) / (sum(times) / len(times)))
+        arrays = sim.particle_arrays()
+        old_ids = arrays["state.id"]
+        nb_ids = old_ids[sim.nl.nb]  # neighbour table in particle ids
+        nb_mask = sim.nl.mask
+        n = self.n_owned
+        owned_arrays = {k: v[:n] for k, v in arrays.items()}
+        owned_arrays["_nb"] = nb_ids[:n]
+        owned_arrays["_mask"] = nb_mask[:n]
+        if self.rebalance_every and self.n_migrations % self.rebalance_every == 0:
+            fl = (owned_arrays["state.phase"] == 0).numpy()
+            w = np.where(fl, self.weights["fluid"], self.weights["solid"])
+            self.bounds = self.equal_bounds(_np(owned_arrays["state.x"])[:, 0], w)
+        k = max(self.c.allgather(int(nb_ids.shape[1])))
+        pad = k - owned_arrays["_nb"].shape[1]
+        if pad:
+            owned_arrays["_nb"] = torch.cat([owned_arrays["_nb"], owned_arrays["state.id"][:, None].expand(-1, pad)], 1)
+            owned_arrays["_mask"] = torch.cat([owned_arrays["_mask"], torch.zeros(n, pad, dtype=torch.bool)], 1)
+        new = self.distribute(owned_arrays)
+        ids = new["state.id"]
+        order = torch.argsort(ids)
+        pos = torch.searchsorted(ids[order], new["_nb"].reshape(-1)).clamp_max(ids.numel() - 1)
+        found = ids[order][pos] == new["_nb"].reshape(-1)
+        local = torch.where(found, order[pos], torch.arange(ids.numel()).repeat_interleave(k))
+        nb = local.view(-1, k)
+        mask = new["_mask"] & found.view(-1, k)
+        own_row = torch.arange(ids.numel()).unsqueeze(1).expand(-1, k)
+        sim.nl.nb = torch.where(mask, nb, own_row).contiguous()
+        sim.nl.mask = mask
+        del new["_nb"], new["_mask"]
+        sim.set_particle_arrays(new)
+        caches = {k_: v for k_, v in new.items() if k_.startswith(("th.", "sf."))}
+        sim._select()
+        sim.set_particle_arrays(caches)  # _select reset the per-rebuild caches: restore them
+        if sim.fluid is not None:  # the pair geometry the next continuity sum reuses
+            saved = sim.dvdt
+            sim.fluid.momentum(sim.state, sim.state.v)
+            sim.dvdt = saved
+
+    # --- gathering ----------------------------------------------------------------------------
+    def gather_owned(self, sim, names=None) -> dict[str, np.ndarray] | None:
+        """Rank 0: the owned rows of all ranks' per-particle arrays, in particle-id order."""
+        arrays = sim.particle_arrays()
+        names = names or list(arrays)
+        mine = {k: _np(arrays[k][: self.n_owned]) for k in names if k in arrays}
+        got = self.c.gather(mine, root=0)
+        if self.rank != 0:
+            return None
+        out = {k: np.concatenate([g[k] for g in got]) for k in mine}
+        order = np.argsort(out["state.id"], kind="stable")
+        return {k: v[order] for k, v in out.items()}
+
+
+def make_comm(cfg: dict, comm=None) -> SlabComm:
+    """A SlabComm for a validated case: the halo spans the neighbour-dependent stages of one
+    step (3 search radii; 5 with free-surface forces) plus the Verlet skin."""
+    from torchsph.kernels import make_kernel
+
+    nm = cfg["numerics"]
+    dx = cfg["scene"].get("dx_m")
+    if dx is None:  # scenes that give a count instead of a spacing: build once to learn dx
+        from torchsph.scenes import build_scene
+        dx = build_scene(cfg).dx
+    h = nm["h_over_dx"] * dx
+    kernel = make_kernel(nm["kernel"], cfg["scene"]["dim"])
+    skin = nm["skin_over_dx"] * dx
+    stages = 5 if "surface" in cfg else 3
+    return SlabComm(kernel.radius(h) + skin, skin, stages=stages, comm=comm,
+                    rebalance_every=nm.get("rebalance_every", 0))

@@ -1,0 +1,106 @@
+"""Bead geometry vs source power and orientation (the thesis's Fig. 6.5) for the four
+deposition cases: a matplotlib PNG and a markdown/CSV table.
+
+    python scripts/compare_cases.py --preview            # runs the four previews (minutes each)
+    python scripts/compare_cases.py --read RUN250 RUN300 RUN350 RUNPERP   # finished runs
+
+Per case: the bead averaged over its steady part (width, height above the original top,
+penetration, added area; NaN where the run is too short for a bead behind the wire) and the
+melt pool at the last snapshot (length, width, depth, peak temperature).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from torchsph import post  # noqa: E402
+from torchsph.io import read_snapshot  # noqa: E402
+
+CASES = ["along_250W", "along_300W", "along_350W", "perpendicular_350W"]
+
+
+def measure(run: Path) -> dict:
+    cfg, snaps = post.load_run(run)
+    last = read_snapshot(snaps[-1][1])
+    prof = post.bead_profile(last, cfg)
+    b = post.steady_average(prof, *post.default_steady_range(last, cfg))
+    mp = post.melt_pool(last, cfg["thermal"]["liquidus_K"], cfg["scene"]["dx_m"], vol=post.volumes(last, cfg))
+    sc = cfg["scene"]
+    return {"case": Path(cfg["case"]).parent.name, "layout": sc["source_layout"], "power_W": sc["source_power_W"],
+            "dx_mm": sc["dx_m"] * 1e3, "t_s": float(last["time"]), "bead_columns": b["columns"],
+            "bead_width_mm": b["width_m"] * 1e3, "bead_height_mm": b["height_m"] * 1e3,
+            "penetration_mm": b["penetration_m"] * 1e3, "added_area_mm2": b["added_area_m2"] * 1e6,
+            "pool_length_mm": mp["length_m"] * 1e3, "pool_width_mm": mp["width_m"] * 1e3,
+            "pool_depth_mm": mp["depth_m"] * 1e3, "peak_K": mp["peak_temperature_K"]}
+
+
+def plot(rows: list[dict], png: Path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), dpi=110)
+    bead = any(r["bead_columns"] > 0 for r in rows)
+    keys = (("bead_width_mm", "width"), ("bead_height_mm", "height"), ("penetration_mm", "penetration")) if bead \
+        else (("pool_width_mm", "pool width"), ("pool_length_mm", "pool length"), ("pool_depth_mm", "pool depth"))
+    along = [r for r in rows if r["layout"] == "along"]
+    perp = [r for r in rows if r["layout"] == "perpendicular"]
+    for key, label in keys:
+        axes[0].plot([r["power_W"] for r in along], [r[key] for r in along], "o-", label=label)
+        if perp:
+            axes[0].plot([r["power_W"] for r in perp], [r[key] for r in perp], "s", ms=8,
+                         label=f"{label}, perpendicular")
+    axes[0].set_xlabel("power per source, W")
+    axes[0].set_ylabel("mm")
+    axes[0].set_title(("bead" if bead else "melt pool") + " vs power (lines: along)", fontsize=9)
+    axes[0].legend(fontsize=7)
+    axes[1].plot([r["power_W"] for r in along], [r["peak_K"] for r in along], "o-", label="along")
+    axes[1].plot([r["power_W"] for r in perp], [r["peak_K"] for r in perp], "s", ms=8, label="perpendicular")
+    axes[1].set_xlabel("power per source, W")
+    axes[1].set_ylabel("peak temperature, K")
+    axes[1].legend(fontsize=7)
+    t = max(r["t_s"] for r in rows)
+    fig.suptitle(f"deposition cases at dx = {rows[0]['dx_mm']:.2f} mm, t = {t * 1e3:.0f} ms", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(png)
+    plt.close(fig)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--preview", action="store_true", help="run the four previews first")
+    ap.add_argument("--read", nargs="+", type=Path, help="finished run folders")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "compare_cases")
+    a = ap.parse_args()
+    runs = a.read
+    if runs is None:
+        runs = []
+        for c in CASES:
+            out = ROOT / "cases" / c / "output_preview"
+            if a.preview:
+                subprocess.run([sys.executable, "-m", "torchsph", str(ROOT / "cases" / c), "--preview", "--quiet",
+                                "--out", str(out)], cwd=ROOT, check=True)
+            runs.append(out)
+    rows = [measure(r) for r in runs]
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    with open(a.out.with_suffix(".csv"), "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    plot(rows, a.out.with_suffix(".png"))
+    cols = list(rows[0])
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for r in rows:
+        print("| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in r.values()) + " |")
+    print(f"wrote {a.out.with_suffix('.png')} and .csv")
+
+
+if __name__ == "__main__":
+    main()

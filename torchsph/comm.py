@@ -1,0 +1,43 @@
+"""The one interface through which a domain decomposition plugs into the solver.
+
+The solver core never imports MPI: :class:`~torchsph.simulation.Simulation` calls these
+hooks, which do nothing in one process. ``parallel/`` provides the MPI implementation
+(slabs along x with ghost halos).
+"""
+from __future__ import annotations
+
+import torch
+
+
+class SerialComm:
+    """One process: every particle is owned, every reduction is the identity."""
+
+    rank = 0
+    size = 1
+
+    def owned(self, sim) -> torch.Tensor | None:
+        """Mask of the particles this process owns (None: all)."""
+        return None
+
+    def reduce_measure(self, vals: list[float]) -> list[float]:
+        """[vmax, amax, rho_min, compression]: max, max, min, max over processes."""
+        return vals
+
+    def merge_limits(self, lim: dict[str, float]) -> dict[str, float]:
+        """Each time-step limit: the minimum over processes."""
+        return lim
+
+    def any(self, flag: bool) -> bool:
+        return flag
+
+    def sum(self, vals: list[float]) -> list[float]:
+        return vals
+
+    def begin_step(self, sim):
+        """Before a step: migration and new ghosts when the last step rebuilt the pairs."""
+
+    def end_step(self, sim):
+        """After a step (and after set-up): ghost particles take their owners' values."""
+
+    def check(self, sim):
+        """Refuse what the decomposition does not support (raises ValueError)."""
