@@ -27,7 +27,7 @@ def test_wire_feed_is_a_continuous_lattice_with_the_exact_mass_flux():
     worth of feed the wire's layers are dx apart with no gap or overlap, ids are unique and
     the fed mass is rho0 (pi d^2 / 4) V t to within one layer (the particles' masses carry
     the disc area exactly, not the lattice's)."""
-    cfg = small("scene.source_layout=\"none\"", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=3.0e-3")
+    cfg = small("scene.source_layout=\"none\"", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=8.0e-3")
     scene, sim = make_simulation(cfg)
     sc = cfg["scene"]
     dx, V = sc["dx_m"], sc["wire_feed_m_s"]
@@ -47,6 +47,16 @@ def test_wire_feed_is_a_continuous_lattice_with_the_exact_mass_flux():
     layer_mass = cfg["fluid"]["rho0_kg_m3"] * math.pi * sc["wire_diameter_m"] ** 2 / 4 * dx
     assert abs(info["wire_inserted_kg"] - info["wire_fed_kg"]) <= layer_mass * (1 + 1e-9)
     assert abs(info["wire_inserted_kg"] / layer_mass - 25) < 1e-9
+
+
+def test_unmelted_wire_reaching_the_substrate_stops_with_a_diagnosis():
+    from torchsph.simulation import SimulationError
+
+    cfg = small("scene.source_layout=\"none\"", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=0.5e-3")
+    _, sim = make_simulation(cfg)
+    with pytest.raises(SimulationError, match="solid wire reached into the substrate .* the sources do not melt"):
+        run_steps(sim, t_end=0.01)
+    assert sim.t < 0.5e-3 / 0.3  # stopped in the step that took it below the top
 
 
 def test_sources_are_aimed_at_the_tip_in_the_declared_layout():
@@ -94,7 +104,7 @@ def test_active_set_error_stays_below_its_tolerance():
 def test_deposition_restart_is_bit_for_bit(tmp_path):
     """K steps == K/2 + restart + K/2 in float64 on the deposition scene with sources,
     a wire fed fast enough that layers enter in both halves, and the active set."""
-    cfg = small("scene.wire_feed_m_s=0.5")
+    cfg = small("scene.wire_feed_m_s=0.5", "scene.wire_gap_m=2.5e-3")
     K = 24
     ref = _run_pair(cfg, K)
     h = cfg["scene"]["dx_m"] / cfg["scene"]["wire_feed_m_s"]
