@@ -112,7 +112,8 @@ class SlabComm:
         if sim.cond_reuse > 0 and sim.thermal is not None and sim.fluid_model is not None:
             pass  # multi-rate conduction is a per-particle array + a global time: supported
         if why:
-            raise ValueError("MPI runs do not yet support " + ", ".join(why))
+            from torchsph.config import CaseError
+            raise CaseError("MPI runs do not yet support " + ", ".join(why) + "; run this case in one process")
 
     def begin_step(self, sim):
         t = time.perf_counter()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -37,6 +38,42 @@ def parse_args(argv=None):
     return ap.parse_args(argv)
 
 
+def mpi_size() -> int:
+    """Number of processes when launched by mpirun / mpiexec (MPICH, Open MPI), else 1;
+    read from the launcher's environment so that one process never imports MPI."""
+    for var in ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS"):
+        if os.environ.get(var, "").isdigit():
+            return int(os.environ[var])
+    return 1
+
+
+def _rank_tag() -> str:
+    if mpi_size() > 1:
+        from mpi4py import MPI
+        return f" (rank {MPI.COMM_WORLD.Get_rank()})"
+    return ""
+
+
+def _abort_others(code: int) -> int:
+    """Under mpirun an error on one rank must not leave the others waiting in a collective."""
+    if mpi_size() > 1:
+        from mpi4py import MPI
+        sys.stderr.flush()
+        MPI.COMM_WORLD.Abort(code)
+    return code
+
+
+def _global_checkpoint(path) -> bool:
+    """A checkpoint written by an MPI run (it restarts on any number of ranks, one included)."""
+    if path is None or not Path(path).exists():
+        return False
+    import torch
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False).get("format") == "global-1"
+    except Exception:  # noqa: BLE001 - the serial restore reports unreadable files
+        return False
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     try:
@@ -51,15 +88,21 @@ def main(argv=None) -> int:
         from .runner import run_case
         if args.checkpoint_every is not None and args.checkpoint_every <= 0:
             raise CaseError(f"--checkpoint-every {args.checkpoint_every}: must be > 0")
-        s = run_case(cfg, path, out, t_end=args.t_end, steps=args.steps, device=args.device,
-                     dtype=args.dtype, progress=not args.quiet, checkpoint_every=args.checkpoint_every,
-                     restart=args.restart)
+        kw = dict(t_end=args.t_end, steps=args.steps, device=args.device, dtype=args.dtype,
+                  progress=not args.quiet, checkpoint_every=args.checkpoint_every, restart=args.restart)
+        if mpi_size() > 1 or _global_checkpoint(args.restart):
+            from parallel.run import run_case_mpi  # launched by mpirun / mpiexec
+            s = run_case_mpi(cfg, path, out, **kw)
+            if s is None:  # not rank 0
+                return 0
+        else:
+            s = run_case(cfg, path, out, **kw)
     except (CaseError, CheckpointError) as e:
         print(f"torchsph: error: {e}", file=sys.stderr)
-        return 2
+        return _abort_others(2)
     except SimulationError as e:
-        print(f"torchsph: stopped: {e}", file=sys.stderr)
-        return 3
+        print(f"torchsph: stopped{_rank_tag()}: {e}", file=sys.stderr)
+        return _abort_others(3)
     except KeyboardInterrupt as e:
         print(f"torchsph: {e or 'interrupted'}", file=sys.stderr)
         return 130

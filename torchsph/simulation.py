@@ -173,6 +173,7 @@ class Simulation:
             self.dTdt = P / state.m
             self._E0 = thermal.energy(state, thermal.prm, 0.0, self.comm.owned(self))
         self.comm.end_step(self)  # ghosts (if any) take their owners' values
+        self._rebuilt = False  # the set-up build needs no migration
         self.info = self._measure()
         self._check_finite(state.v)
         if dt_fixed is not None:
