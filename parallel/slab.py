@@ -105,8 +105,6 @@ class SlabComm:
             why.append("the active set (set numerics.skip_cold_solid = false)")
         if sim.feeder is not None:
             why.append("a fed wire")
-        if sim.surface_model is not None:
-            why.append("free-surface forces")
         if sim.thermal is not None and sim.thermal.beams:
             why.append("beams (their shadowing is global)")
         if sim.cond_reuse > 0 and sim.thermal is not None and sim.fluid_model is not None:

@@ -165,15 +165,17 @@ def build_hydrostatic_tank(cfg, dtype, device) -> Scene:
     D, nd, layers = sc["fluid_depth_m"], sc["n_depth"], sc["wall_layers"]
     dx = D / nd
     nw = round(sc["fluid_width_m"] / dx)
+    nl = round(sc["fluid_length_m"] / dx) if sc["fluid_length_m"] is not None else nw
     nt = round(sc["tank_height_m"] / dx)
-    counts = [nw] * (d - 1) + [nd]
+    horiz = [nl] + [nw] * (d - 2)  # x (length), then y (width) in 3-D
+    counts = horiz + [nd]
     xf = lattice(counts, dx, dtype=dtype, device=device)
-    # walls: a box of particles (nw + 2 layers)^(d-1) x (nt + layers), minus the interior
-    box = lattice([nw + 2 * layers] * (d - 1) + [nt + layers], dx,
+    # walls: a box of particles (n + 2 layers) per horizontal axis x (nt + layers), minus the interior
+    box = lattice([n + 2 * layers for n in horiz] + [nt + layers], dx,
                   origin=[-layers * dx] * d, dtype=dtype, device=device)
     inside = torch.ones(box.shape[0], dtype=torch.bool, device=device)
     for a in range(d - 1):
-        inside &= (box[:, a] > 0) & (box[:, a] < nw * dx)
+        inside &= (box[:, a] > 0) & (box[:, a] < horiz[a] * dx)
     inside &= box[:, d - 1] > 0
     xw = box[~inside]
     g = fl["gravity_m_s2"]
@@ -197,7 +199,7 @@ def build_hydrostatic_tank(cfg, dtype, device) -> Scene:
                                 T=fl["temperature_K"], id=torch.arange(xw.shape[0]) + xf.shape[0],
                                 dtype=dtype, device=device)
     lo = [-layers * dx] * d
-    hi = [(nw + layers) * dx] * (d - 1) + [nt * dx]
+    hi = [(n + layers) * dx for n in horiz] + [nt * dx]
     return Scene(ParticleState.cat([fluid, wall]), Domain(lo, hi, [False] * d), dx,
                  {"depth": D, "g": gz, "rho0": rho0, "z0": z0, "n_fluid": xf.shape[0]})
 
@@ -352,7 +354,8 @@ SCENES: dict[str, SceneSpec] = {
          "wall_layers": Key("int", default=3, ge=1, doc="layers of wall particles")},
         (2,), build_poiseuille, check_poiseuille, "body-force-driven channel between two walls"),
     "hydrostatic_tank": SceneSpec(
-        {"fluid_width_m": Key("float", gt=0, doc="width of the fluid block (x, y)"),
+        {"fluid_width_m": Key("float", gt=0, doc="width of the fluid block (y; and x unless fluid_length_m)"),
+         "fluid_length_m": Key("float", default=None, gt=0, doc="length of the fluid block along x (default: the width)"),
          "fluid_depth_m": Key("float", gt=0, doc="depth of the fluid"),
          "tank_height_m": Key("float", gt=0, doc="height of the tank walls"),
          "n_depth": Key("int", ge=2, doc="particles across the depth"),
