@@ -124,3 +124,15 @@ def test_section_picture_and_numbers(tmp_path):
     assert (tmp_path / "s.png").stat().st_size > 5000
     assert abs(nums["width_m"] - 2 * R) <= DX and abs(nums["penetration_m"] - P) <= DX
     assert abs(nums["x0_m"] - 1.0e-3) <= DX / 2
+
+
+def test_melt_pool_is_the_largest_connected_liquid():
+    """A drop of liquid 2 mm above the pool is not part of it (counted as detached)."""
+    a, b, c = 1.0e-3, 0.6e-3, 0.3e-3
+    x = lattice((-2e-3, -1.5e-3, -1e-3), (2e-3, 1.5e-3, 0))
+    T = np.where((x[:, 0] / a) ** 2 + (x[:, 1] / b) ** 2 + (x[:, 2] / c) ** 2 < 1, 2200.0, 900.0)
+    drop = lattice((1.5e-3, 0, 2e-3), (1.8e-3, 0.3e-3, 2.3e-3))
+    x = np.concatenate([x, drop])
+    T = np.concatenate([T, np.full(drop.shape[0], 2000.0)])
+    mp = post.melt_pool(snap_of(x, T=T), TL, DX, vol=np.full(x.shape[0], DX**3))
+    assert abs(mp["length_m"] - 2 * a) <= DX and mp["n_detached"] == drop.shape[0]

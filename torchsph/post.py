@@ -48,13 +48,46 @@ def substrate_x(snap: dict, cfg: dict) -> np.ndarray:
 
 
 # --- melt pool ----------------------------------------------------------------------
-def melt_pool(snap: dict, T_liquidus: float, dx: float, top: float = 0.0, vol=None) -> dict:
+def components(x: np.ndarray, link: float) -> np.ndarray:
+    """Connected-component labels of points linked within ``link`` (cell-list pairs, label
+    propagation: a loop over sweeps, not over points)."""
+    import torch
+
+    from .neighbors import Domain, build_pairs
+
+    n = x.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int64)
+    i, j = build_pairs(torch.as_tensor(x, dtype=torch.float64), link, Domain([0.0] * 3, [1.0] * 3, [False] * 3))
+    lab = torch.arange(n)
+    while True:
+        new = lab.scatter_reduce(0, i, lab[j], "amin")
+        if torch.equal(new, lab):
+            return lab.numpy()
+        lab = new
+
+
+def melt_pool(snap: dict, T_liquidus: float, dx: float, top: float = 0.0, vol=None,
+              connected: bool = True) -> dict:
     """Length (x), width (y), depth below ``top`` and volume of the liquid (T > T_L), and
-    the peak temperature. Extents are of the particles' cubes (centres +- dx/2)."""
+    the peak temperature. Extents are of the particles' cubes (centres +- dx/2). With
+    ``connected`` the pool is the largest connected body of liquid (particles within 1.5 dx
+    linked) that reaches below ``top`` (else the largest): drops on the wire and spatter are
+    counted apart (``n_detached``)."""
     T = snap["temperature"]
     x = snap["position"]
     liquid = T > T_liquidus
-    out = {"time_s": float(snap["time"]), "peak_temperature_K": float(T.max()), "n_liquid": int(liquid.sum())}
+    out = {"time_s": float(snap["time"]), "peak_temperature_K": float(T.max())}
+    if connected and liquid.sum() > 1:
+        idx = np.nonzero(liquid)[0]
+        lab = components(x[idx], 1.5 * dx)
+        counts = np.bincount(lab)
+        low = np.unique(lab[x[idx, 2] < top])  # bodies that reach into the substrate
+        big = low[counts[low].argmax()] if low.size else counts.argmax()
+        out["n_detached"] = int((lab != big).sum())
+        liquid = np.zeros_like(liquid)
+        liquid[idx[lab == big]] = True
+    out["n_liquid"] = int(liquid.sum())
     if not liquid.any():
         return out | {"length_m": 0.0, "width_m": 0.0, "depth_m": 0.0, "volume_m3": 0.0}
     p = x[liquid]
