@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 import os
-import signal
 import time
 from pathlib import Path
 
@@ -22,7 +21,7 @@ import torch
 from torchsph import io as sio
 from torchsph.checkpoint import CheckpointError, config_hash
 from torchsph.neighbors import build_table
-from torchsph.runner import RunStats, make_simulation, physics_plan, run_steps
+from torchsph.runner import RunStats, make_simulation, physics_plan, run_interruptible, snapshot_due
 from torchsph.state import ParticleState
 
 from .slab import install_abort_hook, make_comm
@@ -158,9 +157,6 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
                unit="step" if steps is not None else "s", dynamic_ncols=True, mininterval=0.5)
     t0 = time.perf_counter()
 
-    def on_sigint(signum, frame):
-        interrupted[0] = True
-
     fail_rank = int(os.environ.get("TORCHSPH_TEST_RAISE_RANK", "-1"))  # tests: one rank raises
 
     def callback(sim, info):
@@ -173,11 +169,8 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
                                 f"ranks={comm.size} {n_total * stats_steps[0] / max(el, 1e-9):.3g} p-steps/s",
                                 refresh=False)
         stats_steps[0] += 1
-        due = (every_steps is not None and sim.step % every_steps == 0) or \
-              (every_steps is None and sim.t >= next_out[0] * (1 - 1e-9))
-        if due:
+        if snapshot_due(sim, every_steps, next_out, interval):
             snapshot()
-            next_out[0] += interval
         if checkpoint_every and sim.step % checkpoint_every == 0:
             write_checkpoint()
         if comm.any(interrupted[0]):
@@ -185,12 +178,7 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
             raise KeyboardInterrupt(f"interrupted at step {sim.step}; checkpoint {ck_path}")
 
     stats_steps = [0]
-    old = signal.signal(signal.SIGINT, on_sigint)
-    try:
-        run_steps(sim, t_end=t_end, steps=steps, callback=callback, stats=stats)
-    finally:
-        signal.signal(signal.SIGINT, old)
-        bar.close()
+    run_interruptible(sim, interrupted, bar, t_end=t_end, steps=steps, callback=callback, stats=stats)
     write_checkpoint()
     wall = time.perf_counter() - t0
     if comm.c.bcast(bool(snaps and snaps[-1][0] != sim.t) if root else None, root=0):

@@ -151,6 +151,33 @@ def run_steps(sim: Simulation, t_end: float | None = None, steps: int | None = N
             callback(sim, info)
 
 
+def snapshot_due(sim: Simulation, every_steps: int | None, next_out: list, interval: float) -> bool:
+    """Whether a snapshot is due after this step: every ``every_steps`` steps, or once the
+    time passes ``next_out[0]`` (which then advances by ``interval``)."""
+    if every_steps is not None:
+        return sim.step % every_steps == 0
+    if sim.t >= next_out[0] * (1 - 1e-9):
+        next_out[0] += interval
+        return True
+    return False
+
+
+def run_interruptible(sim: Simulation, flag: list, bar, **kw):
+    """:func:`run_steps` with SIGINT only setting ``flag[0]`` (the callback finishes the step,
+    checkpoints and stops); the old handler is restored and the progress bar closed."""
+    import signal
+
+    def on_sigint(signum, frame):
+        flag[0] = True
+
+    old = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        run_steps(sim, **kw)
+    finally:
+        signal.signal(signal.SIGINT, old)
+        bar.close()
+
+
 def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, device=None,
              dtype=None, progress=True, checkpoint_every: int | None = None,
              restart: Path | None = None) -> dict:
@@ -161,8 +188,6 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     progress is finished first, then the checkpoint is written and KeyboardInterrupt
     raised). ``restart`` continues from a checkpoint of the same case; ``steps`` then
     counts the steps still to run, ``t_end`` stays the end time."""
-    import signal
-
     from . import checkpoint as ckpt
     from tqdm import tqdm
 
@@ -220,9 +245,6 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     stats = RunStats()
     interrupted = [False]
 
-    def on_sigint(signum, frame):  # finish the step in progress, then checkpoint and stop
-        interrupted[0] = True
-
     def write_checkpoint():
         ckpt.save(sim, ck_path, chash, {"snaps": snaps, "next_out": next_out[0],
                                         **({"feeder": sim.feeder.state_dict()} if sim.feeder else {})})
@@ -240,23 +262,15 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
             el = time.perf_counter() - t0
             bar.set_postfix_str(f"step {sim.step} t={sim.t:.4g}s dt={info.dt:.3g}({info.limit}) "
                                 f"N={sim.state.n} {psteps[0] / max(el, 1e-9):.3g} p-steps/s", refresh=False)
-        due = (every_steps is not None and sim.step % every_steps == 0) or \
-              (every_steps is None and sim.t >= next_out[0] * (1 - 1e-9))
-        if due:
+        if snapshot_due(sim, every_steps, next_out, interval):
             snapshot()
-            next_out[0] += interval
         if checkpoint_every and sim.step % checkpoint_every == 0:
             write_checkpoint()
         if interrupted[0]:
             write_checkpoint()
             raise KeyboardInterrupt(f"interrupted at step {sim.step}; checkpoint {ck_path}")
 
-    old_handler = signal.signal(signal.SIGINT, on_sigint)
-    try:
-        run_steps(sim, t_end=t_end, steps=steps, callback=callback, stats=stats)
-    finally:
-        signal.signal(signal.SIGINT, old_handler)
-        bar.close()
+    run_interruptible(sim, interrupted, bar, t_end=t_end, steps=steps, callback=callback, stats=stats)
     write_checkpoint()
     wall = time.perf_counter() - t0
     if snaps[-1][0] != sim.t:
