@@ -105,10 +105,10 @@ class SlabComm:
             why.append("the active set (set numerics.skip_cold_solid = false)")
         if sim.feeder is not None:
             why.append("a fed wire")
+        if sim.domain.periodic[0]:
+            why.append("a periodic x axis (the slabs' axis)")
         if sim.thermal is not None and sim.thermal.beams:
             why.append("beams (their shadowing is global)")
-        if sim.cond_reuse > 0 and sim.thermal is not None and sim.fluid_model is not None:
-            pass  # multi-rate conduction is a per-particle array + a global time: supported
         if why:
             from torchsph.config import CaseError
             raise CaseError("MPI runs do not yet support " + ", ".join(why) + "; run this case in one process")
