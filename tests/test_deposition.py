@@ -49,6 +49,22 @@ def test_wire_feed_is_a_continuous_lattice_with_the_exact_mass_flux():
     assert abs(info["wire_inserted_kg"] / layer_mass - 25) < 1e-9
 
 
+def test_feed_can_start_late():
+    """wire_feed_start_s: the wire rests until then (the sources preheat its tip), then moves
+    at the feed speed; fed mass counts from the start."""
+    cfg = small("scene.source_layout=\"none\"", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=8.0e-3",
+                "scene.wire_feed_start_s=0.005")
+    scene, sim = make_simulation(cfg)
+    run_steps(sim, t_end=0.004)
+    wire = sim.state.body == WIRE
+    assert float(sim.state.x[wire, 2].min()) == pytest.approx(8.0e-3 + 1.25e-4, abs=1e-12)
+    run_steps(sim, t_end=0.015)
+    assert float(sim.state.x[wire.nonzero()[0], 2]) == pytest.approx(8.0e-3 + 1.25e-4 - 0.3 * 0.010, abs=0.3 * 1.6e-3)
+    sc = cfg["scene"]
+    info = measure(sim.state, scene.info, sim.t, 0.0, 0.3, cfg["fluid"]["rho0_kg_m3"], 1753.15, sc["dx_m"])
+    assert info["wire_fed_kg"] == pytest.approx(cfg["fluid"]["rho0_kg_m3"] * math.pi * 1.2e-3**2 / 4 * 0.3 * 0.010)
+
+
 def test_unmelted_wire_reaching_the_substrate_stops_with_a_diagnosis():
     from torchsph.simulation import SimulationError
 

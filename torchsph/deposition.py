@@ -43,9 +43,11 @@ class WireFeeder:
     rho0 (pi d^2 / 4) dx / n_layer: the fed mass flux is exactly rho0 (pi d^2 / 4) V."""
 
     def __init__(self, layer_xy: torch.Tensor, z0: float, n_layers: int, dx: float, speed: float,
-                 mass: float, rho0: float, T0: float, next_id: int):
+                 mass: float, rho0: float, T0: float, next_id: int, start: float = 0.0):
         self.layer_xy = layer_xy
         self.z0, self.K, self.dx, self.speed = z0, n_layers, dx, speed
+        self.start = start  # the feed starts at this time (the sources may preheat first)
+        self.started = start <= 0.0
         self.mass, self.rho0, self.T0 = mass, rho0, T0
         self.next_id = next_id
         self.n_fed = 0  # layers added so far
@@ -58,18 +60,26 @@ class WireFeeder:
     def layers(self, js: torch.Tensor, t: float) -> ParticleState:
         xy = self.layer_xy
         n = xy.shape[0]
-        z = self.z0 + (js.to(xy.dtype) + 0.5) * self.dx - self.speed * t
+        z = self.z0 + (js.to(xy.dtype) + 0.5) * self.dx - self.fed_length(t)
         x = torch.cat([xy.repeat(js.numel(), 1), z.repeat_interleave(n).unsqueeze(1)], 1)
         v = torch.zeros_like(x)
-        v[:, 2] = -self.speed
+        v[:, 2] = -self.speed if self.started else 0.0
         ids = torch.arange(self.next_id, self.next_id + x.shape[0], device=x.device)
         self.next_id += x.shape[0]
         return ParticleState.create(x, v, self.rho0, self.mass, Phase.SOLID, T=self.T0, id=ids,
                                     body=WIRE, dtype=xy.dtype, device=xy.device)
 
+    def fed_length(self, t: float) -> float:
+        return self.speed * max(0.0, t - self.start)
+
     def new_particles(self, sim, t: float) -> ParticleState | None:
         self.check_contact(sim)
-        due = int(math.floor(self.speed * t / self.dx + 1e-9)) - self.n_fed
+        if not self.started and t >= self.start:  # the wire moves from the next step on
+            self.started = True
+            vw = torch.zeros(sim.state.dim, dtype=sim.state.dtype, device=sim.state.device)
+            vw[2] = -self.speed
+            sim.set_body_velocity(WIRE, vw)
+        due = int(math.floor(self.fed_length(t) / self.dx + 1e-9)) - self.n_fed
         if due <= 0:
             return None
         js = torch.arange(self.K + self.n_fed, self.K + self.n_fed + due, device=self.layer_xy.device)
@@ -93,10 +103,11 @@ class WireFeeder:
                 "sources lower (source_aim_height_m), start the wire higher (wire_gap_m) or feed slower")
 
     def state_dict(self) -> dict:
-        return {"n_fed": self.n_fed, "next_id": self.next_id}
+        return {"n_fed": self.n_fed, "next_id": self.next_id, "started": self.started}
 
     def load_state_dict(self, d: dict):
         self.n_fed, self.next_id = d["n_fed"], d["next_id"]
+        self.started = d.get("started", self.start <= 0.0)
 
 
 def source_beams(sc: dict) -> list[dict]:
@@ -141,7 +152,7 @@ def build(cfg, dtype, device):
     area = math.pi * sc["wire_diameter_m"] ** 2 / 4
     K = max(round(sc["wire_length_m"] / dx), 1)
     feeder = WireFeeder(xy, sc["wire_gap_m"], K, dx, sc["wire_feed_m_s"], rho0 * area * dx / xy.shape[0],
-                        rho0, T0, next_id=xs.shape[0])
+                        rho0, T0, next_id=xs.shape[0], start=sc["wire_feed_start_s"])
     wire = feeder.layers(torch.arange(K, device=device), 0.0)
     st = ParticleState.cat([sub, wire])
     hi_z = sc["wire_gap_m"] + K * dx
@@ -215,7 +226,7 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
         pool |= {"length_m": ext[0], "width_m": ext[1], "depth_below_top_m": max(0.0, -float(xp[:, 2].min())),
                 "volume_m3": float((m[hot] / state.rho[hot]).sum())}
     feeder = info["feeder"]
-    fed = rho0 * feeder.area * V_wire * t
+    fed = rho0 * feeder.area * feeder.fed_length(t)
     inserted = float(m[wire_origin].sum()) - info["wire_mass0"]
     melted = float(m[wire_origin & ~solid_wire].sum())
     return {"t_s": t, "bin_centres_m": centres.tolist(), "added_area_m2": added.tolist(),

@@ -403,6 +403,8 @@ SCENES: dict[str, SceneSpec] = {
          "wire_length_m": Key("float", gt=0, doc="wire modelled above its tip (fed continuously)"),
          "wire_feed_m_s": Key("float", ge=0, doc="wire feed speed V_wire (along -z)"),
          "wire_gap_m": Key("float", ge=0, doc="height of the wire tip above the substrate at t = 0"),
+         "wire_feed_start_s": Key("float", default=0.0, ge=0,
+                                  doc="the feed starts at this time (the sources preheat the tip first)"),
          "source_layout": Key("str", choices=("along", "perpendicular", "none"),
                               doc="sources in the plane of travel (ahead/behind) or across it"),
          "source_count": Key("int", default=2, ge=1, doc="number of sources, evenly spaced in azimuth"),

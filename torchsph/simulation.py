@@ -122,6 +122,7 @@ class Simulation:
         self.comm = comm if comm is not None else SerialComm()  # decomposition hooks (no-ops in one process)
         self.cond_reuse = cond_reuse
         self._rebuilt = False  # the last step rebuilt the neighbour list
+        self._new_body_velocity = False
         self.active_set = active if (active is not None and not domain.any_periodic) else None
         self.feeder = feeder
         self.plan = PlanStats()
@@ -363,6 +364,10 @@ class Simulation:
                 self.dvdt = self.dvdt - self._damping_rate(self.t + dt) * torch.where(
                     fm, v_tilde, torch.zeros_like(v_tilde))
         s.v = v_half + 0.5 * dt * self.dvdt  # 3c
+        if self._new_body_velocity:  # a body's velocity was changed during the step (a feed starts)
+            self._new_body_velocity = False
+            solid = (s.phase == Phase.SOLID).unsqueeze(-1)
+            s.v = torch.where(solid, self.body_velocity.index_select(0, s.body), s.v)
         if self.thermal is not None:
             P, heat = self.thermal.power(s, s.T, self.t + dt,  # 2 (W per particle; 0 on walls)
                                          reuse_conduction=self._reuse_conduction(self.t + dt))
@@ -385,6 +390,11 @@ class Simulation:
             self._stale = True  # heat reached the frontier band: refresh at the next rebuild point
         self.plan.add(self)
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])
+
+    def set_body_velocity(self, body: int, v: torch.Tensor):
+        """Change a rigid body's velocity; its solid particles take it at the end of the step."""
+        self.body_velocity[body] = v
+        self._new_body_velocity = True
 
     def _reuse_conduction(self, t_new: float) -> bool:
         """Multi-rate conduction: the conduction power is re-evaluated only once the time since
