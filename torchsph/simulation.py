@@ -316,11 +316,11 @@ class Simulation:
         cache, self._lim_cache = getattr(self, "_lim_cache", None), None
         self._pre_limits = (cache[2] if cache is not None and cache[:2] == (self.step, self.state.n)
                             else self.limits())  # of the last good state, for a diagnosis
-        self._T_prev = self.state.T
         if dt is None:
             dt, limit = self.choose_dt()
         self.comm.begin_step(self)  # migration and new ghosts after a rebuild (decomposed runs)
         self._rebuilt = False
+        self._T_prev = self.state.T
         s = self.state
         fm = self.fluid_mask.unsqueeze(-1)
         a = self.dvdt  # zero for walls: they keep their prescribed velocity
@@ -348,7 +348,6 @@ class Simulation:
         if self.feeder is not None:  # new particles enter at t + dt
             new = self.feeder.new_particles(self, self.t + dt)
             if new is not None and new.n:
-                k = new.n
                 self.add_particles(new)
                 v_half = torch.cat([v_half, new.v])
                 v_tilde = torch.cat([v_tilde, new.v])
@@ -356,7 +355,6 @@ class Simulation:
                 if self.thermal is not None:
                     H_half = torch.cat([H_half, self.thermal.to_enthalpy(new.T)])
                 s = self.state
-                assert s.n == v_half.shape[0] and k > 0
         self._refresh_pairs()
         if self.fluid is not None:
             self.dvdt = self._accelerations(v_tilde)  # 2
