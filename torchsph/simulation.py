@@ -381,9 +381,9 @@ class Simulation:
         self.step += 1
         if self.phase_change is not None:
             self._update_phases(dt)
-        self._check_finite(v_tilde, dt, limit)
         self.comm.end_step(self)
         self.info = self._measure()
+        self._check_finite(v_tilde, dt, limit)
         if self.active_set is not None and self.active_set.stale(s, getattr(self.thermal, "lit", None)):
             self._stale = True  # heat reached the frontier band: refresh at the next rebuild point
         self.plan.add(self)
