@@ -190,8 +190,9 @@ def section(snap: dict, cfg: dict, x0: float, png: str | Path | None = None, tit
         y, z, Tp = snap["position"][sel, 1], snap["position"][sel, 2], snap["peak_temperature"][sel]
         fig, ax = plt.subplots(figsize=(6, 3.2), dpi=110)
         sc_ = ax.scatter(y * 1e3, z * 1e3, c=Tp, s=14, cmap="inferno", marker="s")
-        if sel.sum() > 3 and Tp.max() > TL > Tp.min():
-            ax.tricontour(y * 1e3, z * 1e3, Tp, levels=[TL], colors="cyan", linewidths=1.5)
+        sub = z < 0.5 * dx  # the fusion line runs through the substrate; the bead above is all fused
+        if sub.sum() > 3 and Tp[sub].max() > TL > Tp[sub].min():
+            ax.tricontour(y[sub] * 1e3, z[sub] * 1e3, Tp[sub], levels=[TL], colors="cyan", linewidths=1.5)
         ax.axhline(0.0, color="w", lw=0.8, ls="--")
         ax.set_aspect("equal")
         ax.set_xlabel("y, mm")
