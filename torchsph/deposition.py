@@ -93,8 +93,9 @@ class WireFeeder:
         s = sim.state
         z = torch.where((s.body == WIRE) & (s.phase == Phase.SOLID), s.x[:, 2],
                         torch.full_like(s.x[:, 2], math.inf))
-        k = int(torch.argmin(z))
-        if float(z[k]) < -0.5 * self.dx:
+        zmin, k = torch.min(z, 0)
+        if float(zmin) < -0.5 * self.dx:  # one sync per step; the rest only on failure
+            k = int(k)
             from .simulation import SimulationError
             raise SimulationError(
                 f"step {sim.step}, t = {sim.t:.6g} s: solid wire reached into the substrate (particle id "

@@ -89,9 +89,9 @@ class PlanStats:
         """{term: {particles: fraction, pairs: fraction}} averaged over the steps."""
         out = {}
         for k, (r, p, n, ap) in self.sums.items():
-            out[k] = {"particles": r / n if n else 0.0}
+            out[k] = {"particles": float(r) / n if n else 0.0}
             if k in ("momentum", "wall", "conduction"):
-                out[k]["pairs"] = p / ap if ap else 0.0
+                out[k]["pairs"] = float(p) / ap if ap else 0.0
         return out
 
 

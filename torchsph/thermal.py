@@ -309,7 +309,7 @@ class Conduction:
         if self.beams:
             parts["beam"] = self.beam_power(state, t, self.rows)
             self.lit = parts["beam"] > 0
-            self.n_lit = int(self.lit.sum())
+            self.n_lit = self.lit.sum()  # a tensor: the plan statistics sum it without a sync per step
         if self.losses.active:
             if self._area is None:
                 self._area = self.surface_area(state)
