@@ -20,7 +20,6 @@ import torch
 
 from torchsph import io as sio
 from torchsph.checkpoint import CheckpointError, config_hash
-from torchsph.neighbors import build_table
 from torchsph.runner import RunStats, make_simulation, physics_plan, run_interruptible, snapshot_due
 from torchsph.state import ParticleState
 
@@ -46,7 +45,9 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict):
          "arrays": {k: torch.as_tensor(v) for k, v in arrays.items()},
          "energy": dict(zip(ek, sums[:len(ek)])), "heat": dict(zip(hk, sums[len(ek):len(ek) + len(hk)])),
          "E0": sums[-1] if sums else None, "t_cond": getattr(sim.thermal, "t_cond", None),
-         "n_builds": sim.nl.n_builds, "rng": torch.get_rng_state(), "extra": extra, "written": time.time()}
+         "n_builds": sim.nl.n_builds, "rng": torch.get_rng_state(), "extra": extra, "written": time.time(),
+         "body_velocity": sim.body_velocity.cpu(), "stale": sim._stale,
+         "feeder": sim.feeder.state_dict() if sim.feeder is not None else None}
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
         torch.save(d, f)
@@ -66,9 +67,13 @@ def restore_global(sim, comm, d: dict, chash: str, path: str):
     local = comm.distribute({k: v for k, v in d["arrays"].items()}, first=True)
     local = {k: v.to(dev) for k, v in local.items()}
     sim.set_particle_arrays(local)
-    # the neighbour table as the last rebuild made it: all pairs within the Verlet radius there
-    sim.nl.nb, sim.nl.mask = build_table(sim.nl.x_ref, sim.nl.radius + sim.nl.skin, sim.nl.domain)
+    comm.table_at_reference(sim)  # the neighbour table as the last rebuild made it
     sim.nl.n_builds = d["n_builds"]
+    if "body_velocity" in d:
+        sim.body_velocity = d["body_velocity"].to(device=dev, dtype=dt)
+        sim._stale = d["stale"]
+    if sim.feeder is not None and d.get("feeder") is not None:
+        sim.feeder.load_state_dict(d["feeder"])
     sim.t, sim.step = d["t"], d["step"]
     caches = {k: v for k, v in local.items() if k.startswith(("th.", "sf."))}
     sim._select()
@@ -120,6 +125,7 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
     chash = config_hash(cfg)
     ck_path = out_dir / "checkpoint.pt"
     snaps: list = []
+    deposit: list = []  # deposition measures at each snapshot (a deposition scene)
     interval = run["output_interval_s"] or ((t_end / 10.0) if t_end is not None else math.inf)
     every_steps = max(steps // 10, 1) if (steps is not None and run["output_interval_s"] is None) else None
     next_out = [interval]
@@ -131,6 +137,7 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
         extra = restore_global(sim, comm, d, chash, str(restart))
         snaps = [tuple(s) for s in extra.get("snaps", [])]
         next_out = [extra.get("next_out", interval)]
+        deposit[:] = extra.get("deposit", [])
     fdt = np.dtype(str(sim.state.dtype).replace("torch.", ""))
 
     def snapshot():
@@ -139,13 +146,19 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
         if not root:
             return
         st = _state_from(g)
+        if "feeder" in scene.info:
+            from torchsph.deposition import measure
+            sc = cfg["scene"]
+            deposit.append(measure(st, scene.info, sim.t, sc["substrate_velocity_m_s"][0], sc["wire_feed_m_s"],
+                                   cfg["fluid"]["rho0_kg_m3"], cfg["thermal"]["liquidus_K"], scene.dx))
+            sio.write_json(out_dir / "deposit.json", deposit)
         name = f"snap_{len(snaps):05d}.h5"
         sio.write_snapshot(out_dir / name, st, sim.t, sim.step)
         snaps.append((sim.t, name, st.n))
         sio.write_xdmf(out_dir / "particles.xdmf", snaps, fdt)
 
     def write_checkpoint():
-        save_global(sim, comm, ck_path, chash, {"snaps": snaps, "next_out": next_out[0]})
+        save_global(sim, comm, ck_path, chash, {"snaps": snaps, "next_out": next_out[0], "deposit": deposit})
 
     if restart is None:
         snapshot()

@@ -60,9 +60,9 @@ class SlabComm:
         self.n_owned = 0
         self.bounds = None  # (size + 1,) slab boundaries in x
         self.send = []  # per rank: local rows (owned) whose copies are ghosts there
-        self.recv = []  # per rank: (start, stop) of the ghost block received from it
+        self.recv = []  # per rank: local rows of the ghosts received from it
         self.rebalance_every = rebalance_every
-        self.weights = weights or {"fluid": 4.0, "solid": 1.0}
+        self.weights = weights or {"fluid": 4.0, "solid": 1.0, "idle": 0.1}
         self.n_migrations = 0
         self.step_time = 0.0  # wall time of the last step on this rank
         self.imbalance = []  # max / mean step time over ranks, per migration
@@ -99,16 +99,77 @@ class SlabComm:
         self.c.Allreduce(v, out, op=MPI.SUM)
         return out.tolist()
 
+    def gather_rows(self, d):
+        got = self.c.allgather({k: _np(v) for k, v in d.items()})
+        return {k: torch.as_tensor(np.concatenate([g[k] for g in got])).to(v.device) for k, v in d.items()}
+
+    def slab_of(self, x: torch.Tensor) -> np.ndarray:
+        return np.searchsorted(self.bounds, _np(x[:, 0]), side="right") - 1
+
+    def claim(self, sim, new):
+        """Of particles added on every rank alike (a fed wire's layer): the ones this rank
+        owns, then copies of the ones other ranks own within this rank's halo (ghosts from
+        the start, so no rank misses a neighbour until the next migration)."""
+        from dataclasses import fields as dc_fields
+        from torchsph.state import ParticleState
+
+        x = _np(new.x)[:, 0]
+        dest = np.searchsorted(self.bounds, x, side="right") - 1
+        lo, hi = self.bounds[self.rank] - self.halo, self.bounds[self.rank + 1] + self.halo
+        near = (x >= lo) & (x < hi)
+        own = dest == self.rank
+        # ghost order: by owner rank, then as given (the owner appends its send rows alike)
+        ghost = np.concatenate([np.nonzero(near & (dest == q))[0] for q in range(self.size) if q != self.rank])
+        rows = np.concatenate([np.nonzero(own)[0], ghost]).astype(np.int64)
+        self._new = {"n_own": int(own.sum()), "ghost_owner": dest[ghost],
+                     # rows among this rank's new particles that rank q holds as ghosts
+                     "send": [np.nonzero((x[own] >= self.bounds[q] - self.halo) & (x[own] < self.bounds[q + 1] + self.halo))[0]
+                              if q != self.rank else np.zeros(0, np.int64) for q in range(self.size)]}
+        sel = torch.as_tensor(rows, device=new.x.device)
+        local = ParticleState(**{f.name: getattr(new, f.name).index_select(0, sel) for f in dc_fields(new)})
+        mine = torch.zeros(local.n, dtype=torch.bool, device=new.x.device)
+        mine[: self._new["n_own"]] = True
+        return local, mine
+
+    def place_new(self, sim, k):
+        """The k rows just appended (this rank's new particles, then new ghosts): the owned
+        ones move in front of the old ghosts, the ghosts join their owners' blocks, and the
+        send lists gain the owned ones other ranks now hold as ghosts."""
+        n = sim.state.n
+        n0 = n - k
+        k_own = self._new["n_own"]
+        dev = sim.state.device
+        ar = lambda a, b: torch.arange(a, b, device=dev)  # noqa: E731
+        perm = torch.cat([ar(0, self.n_owned), ar(n0, n0 + k_own), ar(self.n_owned, n0), ar(n0 + k_own, n)])
+        sim.set_particle_arrays({key: v.index_select(0, perm) for key, v in sim.particle_arrays().items()
+                                 if v.shape[0] == n})
+        owned0 = self.n_owned
+        self.n_owned += k_own
+        self.recv = [r + k_own for r in self.recv]  # old ghosts moved down by k_own
+        g_rows = np.arange(n - (k - k_own), n)  # the new ghosts' rows now
+        owner = self._new["ghost_owner"]
+        for q in range(self.size):
+            add = torch.as_tensor(g_rows[owner == q], dtype=torch.long)
+            self.recv[q] = torch.cat([self.recv[q], add])
+            self.send[q] = torch.cat([self.send[q], torch.as_tensor(owned0 + self._new["send"][q], dtype=torch.long)])
+        return perm
+
+    def table_at_reference(self, sim):
+        """The neighbour table as the last rebuild made it: all pairs within the Verlet radius
+        at the reference positions (over the active set's work particles when skipping)."""
+        from torchsph.neighbors import build_table, subset_table
+
+        nl, r = sim.nl, sim.nl.radius + sim.nl.skin
+        work = sim.active_set.work if sim.active_set is not None else None
+        if work is None or bool(work.all()):
+            nl.nb, nl.mask = build_table(nl.x_ref, r, nl.domain)
+        else:
+            nl.nb, nl.mask = subset_table(nl.x_ref, work, r, nl.domain)
+
     def check(self, sim):
         why = []
-        if sim.active_set is not None:
-            why.append("the active set (set numerics.skip_cold_solid = false)")
-        if sim.feeder is not None:
-            why.append("a fed wire")
         if sim.domain.periodic[0]:
             why.append("a periodic x axis (the slabs' axis)")
-        if sim.thermal is not None and sim.thermal.beams:
-            why.append("beams (their shadowing is global)")
         if why:
             from torchsph.config import CaseError
             raise CaseError("MPI runs do not yet support " + ", ".join(why) + "; run this case in one process")
@@ -171,7 +232,7 @@ class SlabComm:
         blocks, self.recv, start = [mine], [], self.n_owned
         for q, g in enumerate(got):
             n = g["state.id"].shape[0]
-            self.recv.append((start, start + n))
+            self.recv.append(torch.arange(start, start + n))
             start += n
             blocks.append({k: torch.as_tensor(g[k]) for k in mine})
         return {k: torch.cat([b[k].to(mine[k].dtype) for b in blocks]) for k in mine}
@@ -184,10 +245,9 @@ class SlabComm:
         got = self.c.alltoall(out)
         changed = {}
         for q, g in enumerate(got):
-            a, b = self.recv[q]
-            if b == a:
+            rows = self.recv[q]
+            if rows.numel() == 0:
                 continue
-            rows = torch.arange(a, b)
             for k, v in g.items():
                 base = changed.get(k, arrays[k])
                 changed[k] = base.index_copy(0, rows, torch.as_tensor(v, dtype=base.dtype))
@@ -212,6 +272,8 @@ class SlabComm:
         if self.rebalance_every and self.n_migrations % self.rebalance_every == 0:
             fl = (owned_arrays["state.phase"] == 0).numpy()
             w = np.where(fl, self.weights["fluid"], self.weights["solid"])
+            if "as.work" in owned_arrays:  # solid left out of the work costs (almost) nothing
+                w = np.where(fl | _np(owned_arrays["as.work"]), w, self.weights["idle"])
             self.bounds = self.equal_bounds(_np(owned_arrays["state.x"])[:, 0], w)
         k = max(self.c.allgather(int(nb_ids.shape[1])))
         pad = k - owned_arrays["_nb"].shape[1]

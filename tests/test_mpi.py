@@ -27,6 +27,11 @@ FLUID = (ROOT / "cases" / "hydrostatic_tank_3d", ["fluid.body_force_m_s2=[3.0, 0
 THERMAL = (ROOT / "cases" / "stefan_1d", [], 150)
 # an oscillating drop: surface tension (normals, curvature) across the slab boundary
 SURFACE = (ROOT / "cases" / "oscillating_drop_2d", [], 150)
+# the deposition scene, small: two beams (global shadowing), the fed wire (layers inserted on
+# the owning rank, copied as ghosts), the active set, melting; the slab boundary cuts the wire
+DEPOSITION = (ROOT / "cases" / "perpendicular_350W",
+              ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[3.0e-3, 3.0e-3, 1.0e-3]", "scene.wire_offset_m=1.5e-3",
+               "scene.wire_length_m=1.0e-3", "scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1"], 300)
 
 
 def mpirun(n, args, env=ENV, timeout=600):
@@ -40,7 +45,7 @@ def serial(case, overrides, steps):
     run_steps(sim, steps=steps)
     s = sim.state
     o = s.id.argsort()
-    return {k: getattr(s, k)[o].numpy() for k in ("id", "x", "v", "rho", "T", "m")}, sim
+    return {k: getattr(s, k)[o].numpy() for k in ("id", "x", "v", "rho", "T", "m", "phase")}, sim
 
 
 def rel(a, b):
@@ -48,12 +53,15 @@ def rel(a, b):
     return float(np.abs(a - b).max()) / scale
 
 
-@pytest.mark.parametrize("which", ["fluid", "thermal", "surface"])
+@pytest.mark.parametrize("which", ["fluid", "thermal", "surface", "deposition"])
 def test_decomposed_run_equals_single_process(tmp_path, which):
     """After K steps on 2 and 3 ranks the state gathered by id equals the single-process run to
     1e-10 relative (float64); particle count and total mass are exactly conserved."""
-    case, ov, K = {"fluid": FLUID, "thermal": THERMAL, "surface": SURFACE}[which]
+    case, ov, K = {"fluid": FLUID, "thermal": THERMAL, "surface": SURFACE, "deposition": DEPOSITION}[which]
     ref, sim = serial(case, ov, K)
+    if which == "deposition":  # what the case must exercise
+        assert sim.feeder.n_fed >= 2 and (ref["phase"] == 0).sum() > 0 and sim.active_set is not None
+        assert 0 < float(sim.thermal.lit.sum())
     for n in (2, 3):
         out = tmp_path / f"r{n}.npz"
         r = mpirun(n, ["-m", "parallel.driver", str(case), str(K), str(out)] + ov)
@@ -69,28 +77,31 @@ def test_decomposed_run_equals_single_process(tmp_path, which):
                 assert rel(g[f"state_{k}"], ref[k]) < 1e-10, (n, k, rel(g[f"state_{k}"], ref[k]))
 
 
-def test_checkpoint_restarts_on_other_rank_counts(tmp_path):
+@pytest.mark.parametrize("which", ["fluid", "deposition"])
+def test_checkpoint_restarts_on_other_rank_counts(tmp_path, which):
     """A checkpoint written by 2 ranks restarts on 1 and on 3 and continues to the state of
-    the uninterrupted run."""
-    case, ov, _ = FLUID
+    the uninterrupted run (the deposition scene: a wire layer enters in each half)."""
+    case, ov, _ = {"fluid": FLUID, "deposition": DEPOSITION}[which]
+    K = 120 if which == "fluid" else 100
     sets = [a for o in ov for a in ("--set", o)]
     base = ["-m", "torchsph", str(case), "--quiet"] + sets
-    r = mpirun(2, base + ["--steps", "120", "--out", str(tmp_path / "full")])
+    r = mpirun(2, base + ["--steps", str(K), "--out", str(tmp_path / "full")])
     assert r.returncode == 0, r.stderr[-3000:]
-    r = mpirun(2, base + ["--steps", "60", "--out", str(tmp_path / "half")])
+    r = mpirun(2, base + ["--steps", str(K // 2), "--out", str(tmp_path / "half")])
     assert r.returncode == 0, r.stderr[-3000:]
     ck = tmp_path / "half" / "checkpoint.pt"
     full = read_snapshot(sorted((tmp_path / "full").glob("snap_*.h5"))[-1])
-    r3 = mpirun(3, base + ["--restart", str(ck), "--steps", "60", "--out", str(tmp_path / "r3")])
+    r3 = mpirun(3, base + ["--restart", str(ck), "--steps", str(K // 2), "--out", str(tmp_path / "r3")])
     assert r3.returncode == 0, r3.stderr[-3000:]
-    r1 = subprocess.run([sys.executable] + base + ["--restart", str(ck), "--steps", "60", "--out",
+    r1 = subprocess.run([sys.executable] + base + ["--restart", str(ck), "--steps", str(K // 2), "--out",
                                                    str(tmp_path / "r1")], cwd=ROOT, env=ENV, capture_output=True,
                         text=True, timeout=600)
     assert r1.returncode == 0, r1.stderr[-3000:]
     for d in ("r3", "r1"):
         s = read_snapshot(sorted((tmp_path / d).glob("snap_*.h5"))[-1])
-        assert s["step"] == full["step"] == 120
-        for k in ("position", "velocity", "density"):
+        assert s["step"] == full["step"] == K
+        assert np.array_equal(s["id"], full["id"])
+        for k in ("position", "velocity", "density", "temperature"):
             assert rel(s[k], full[k]) < 1e-10, (d, k)
 
 

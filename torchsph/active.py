@@ -35,8 +35,10 @@ def dilate(x: torch.Tensor, seed: torch.Tensor, radius: float) -> torch.Tensor:
         return seed.clone()
     cell = 0.5 * radius
     k = math.ceil(radius / cell)
-    lo = x.min(0).values
-    c = torch.floor((x - lo) / cell).long() + k  # >= k, so offsets stay non-negative
+    # voxels on a fixed grid (not from the local bounding box), so that a process holding
+    # part of the particles grows the same sets as one holding all of them
+    c = torch.floor(x / cell).long()
+    c = c - c.min(0).values + k  # >= k, so offsets stay non-negative
     dims = (c.max(0).values + k + 1).tolist()
     mult = [1] * len(dims)
     for a in range(len(dims) - 2, -1, -1):

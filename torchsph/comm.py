@@ -33,6 +33,20 @@ class SerialComm:
     def sum(self, vals: list[float]) -> list[float]:
         return vals
 
+    def gather_rows(self, d: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Each array concatenated over processes (rank order)."""
+        return d
+
+    def claim(self, sim, new):
+        """Of particles to be added (the same on every process): the ones this process holds
+        (its own, and copies of others' it needs), and the mask of its own (None: all)."""
+        return new, None
+
+    def place_new(self, sim, k: int) -> torch.Tensor | None:
+        """After ``k`` particles were appended: reorder rows as the decomposition needs
+        (returns the permutation applied, or None)."""
+        return None
+
     def begin_step(self, sim):
         """Before a step: migration and new ghosts when the last step rebuilt the pairs."""
 

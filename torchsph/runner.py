@@ -222,7 +222,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
             sim.feeder.load_state_dict(extra["feeder"])
         resumed = extra
 
-    deposit = []  # deposition measures at each snapshot
+    deposit = list(resumed.get("deposit", [])) if resumed else []  # deposition measures at each snapshot
 
     def snapshot():
         if "feeder" in scene.info:
@@ -246,7 +246,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     interrupted = [False]
 
     def write_checkpoint():
-        ckpt.save(sim, ck_path, chash, {"snaps": snaps, "next_out": next_out[0],
+        ckpt.save(sim, ck_path, chash, {"snaps": snaps, "next_out": next_out[0], "deposit": deposit,
                                         **({"feeder": sim.feeder.state_dict()} if sim.feeder else {})})
     bar = tqdm(total=steps if steps is not None else t_end, disable=not progress,
                unit="step" if steps is not None else "s", dynamic_ncols=True, mininterval=0.5,

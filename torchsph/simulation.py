@@ -159,6 +159,8 @@ class Simulation:
         self.t = 0.0
         self.step = 0
         self._stale = False  # the active set must be refreshed at the next rebuild point
+        if thermal is not None:
+            thermal.comm, thermal.owned = self.comm, self.comm.owned(self)
         if self.active_set is not None and thermal is not None:
             thermal.lit = thermal.lit_mask(state, 0.0)  # the beams' footprint seeds the active set
         self._refresh_pairs(force=True)
@@ -348,12 +350,17 @@ class Simulation:
         if self.feeder is not None:  # new particles enter at t + dt
             new = self.feeder.new_particles(self, self.t + dt)
             if new is not None and new.n:
-                self.add_particles(new)
-                v_half = torch.cat([v_half, new.v])
-                v_tilde = torch.cat([v_tilde, new.v])
+                new, perm = self.add_particles(new)  # this process's share of them
+                if new.n:
+                    v_half = torch.cat([v_half, new.v])
+                    v_tilde = torch.cat([v_tilde, new.v])
+                    if self.thermal is not None:
+                        H_half = torch.cat([H_half, self.thermal.to_enthalpy(new.T)])
+                    if perm is not None:  # a decomposition keeps its own rows first
+                        v_half, v_tilde = v_half.index_select(0, perm), v_tilde.index_select(0, perm)
+                        if self.thermal is not None:
+                            H_half = H_half.index_select(0, perm)
                 fm = self.fluid_mask.unsqueeze(-1)
-                if self.thermal is not None:
-                    H_half = torch.cat([H_half, self.thermal.to_enthalpy(new.T)])
                 s = self.state
         self._refresh_pairs()
         if self.fluid is not None:
@@ -384,7 +391,7 @@ class Simulation:
         self.comm.end_step(self)
         self.info = self._measure()
         self._check_finite(v_tilde, dt, limit)
-        if self.active_set is not None and self.active_set.stale(s, getattr(self.thermal, "lit", None)):
+        if self.active_set is not None and self.comm.any(self.active_set.stale(s, getattr(self.thermal, "lit", None))):
             self._stale = True  # heat reached the frontier band: refresh at the next rebuild point
         self.plan.add(self)
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])
@@ -423,9 +430,13 @@ class Simulation:
         if th is not None:
             d.update({"th.k": th.k, "th.T_set": th.T_set, "th._zeta": th._zeta, "th._area": th._area,
                       "th.normal": getattr(th, "normal", None), "th.q_cond": th.q_cond})
+            d["th.lit"] = getattr(th, "lit", None)
         sf = self.surface_model
         if sf is not None:
             d.update({"sf.normal": sf.normal, "sf.kappa": sf.kappa})
+        a = self.active_set
+        if a is not None:
+            d.update({"as.active": a.active, "as.work": a.work, "as.frontier": a.frontier})
         return {k: v for k, v in d.items() if v is not None}
 
     def set_particle_arrays(self, d: dict[str, torch.Tensor]):
@@ -440,14 +451,21 @@ class Simulation:
                          "nl.x_ref": (self.nl, "x_ref")}.get(k, (None, None))
             if obj is None:
                 owner, name = k.split(".", 1)
-                obj = self.thermal if owner == "th" else self.surface_model
+                obj = {"th": self.thermal, "sf": self.surface_model, "as": self.active_set}[owner]
             setattr(obj, name, v)
         self.fluid_mask = self.state.phase == Phase.FLUID
         self.n_fluid = int(self.fluid_mask.sum())
 
     def add_particles(self, new: ParticleState):
         """Append particles (e.g. a fed wire's new layer) at rest relative to their body,
-        with zero rates; the neighbour list is rebuilt at the next rebuild point (forced)."""
+        with zero rates; the neighbour list is rebuilt at the next rebuild point (forced).
+        Every process of a decomposed run is given the same ``new`` and keeps the ones in
+        its slab. Returns (the particles added here, the row permutation the decomposition
+        applied to keep its own rows first, or None)."""
+        self._stale = True
+        new, own = self.comm.claim(self, new)
+        if new.n == 0:
+            return new, None
         z = lambda t: torch.cat([t, torch.zeros((new.n,) + t.shape[1:], dtype=t.dtype, device=t.device)])  # noqa: E731
         self.state = ParticleState.cat([self.state, new])
         self.dvdt, self.drhodt = z(self.dvdt), z(self.drhodt)
@@ -455,13 +473,14 @@ class Simulation:
             self.dTdt = z(self.dTdt)
             self.thermal.add_particles(new)
             # the enthalpy the new particles bring in (the stored energy counts it)
-            fed = (new.m * self.thermal.to_enthalpy(new.T)).sum()
+            fed = new.m * self.thermal.to_enthalpy(new.T)
+            fed = (fed if own is None else torch.where(own, fed, torch.zeros_like(fed))).sum()
             self.energy["fed"] = self.energy.get("fed", 0.0) + fed
         if self.active_set is not None:
             self.active_set.pad(new.n)
         self.fluid_mask = self.state.phase == Phase.FLUID
         self.n_fluid = int(self.fluid_mask.sum())
-        self._stale = True
+        return new, self.comm.place_new(self, new.n)
 
     def _resting_body(self, rows: torch.Tensor):
         """For each of ``rows``: the rigid body with the largest kernel weight among its

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from .fluid import embed, gather_nb, pair_geometry
-from .beam import beam_power
+from .beam import beam_power, in_beam
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import ParticleState, Phase
@@ -328,9 +328,35 @@ class Conduction:
     def beam_power(self, state: ParticleState, t: float, rows: torch.Tensor) -> torch.Tensor:
         """Power (W) each particle absorbs from all beams; only ``rows`` absorb or shadow
         (with an active set, the beams' footprints are in it: lit particles seed it)."""
+        comm = getattr(self, "comm", None)
+        if comm is not None and comm.size > 1:
+            return self._beam_power_decomposed(state, t, rows, comm)
         x = state.x.index_select(0, rows)
         material = torch.ones(rows.numel(), dtype=torch.bool, device=x.device)
         P = sum(beam_power(x, material, b, t, self.dx) for b in self.beams)
+        return embed(rows, P, state.n)
+
+    def _beam_power_decomposed(self, state: ParticleState, t: float, rows: torch.Tensor, comm):
+        """Shadowing is global: the candidates of all processes (their own particles inside
+        a beam's cylinder) are gathered in particle-id order (the order of one process), the
+        beams traced over them on every process, and each local row (owned or ghost) takes
+        its particle's power by id."""
+        own = self.owned.index_select(0, rows)
+        x, ids = state.x.index_select(0, rows), state.id.index_select(0, rows)
+        cyl = torch.zeros_like(own)
+        for b in self.beams:
+            cyl = cyl | in_beam(x, b, t)
+        sel = own & cyl
+        g = comm.gather_rows({"x": x[sel], "id": ids[sel]})
+        order = torch.argsort(g["id"])
+        gx, gid = g["x"].index_select(0, order), g["id"].index_select(0, order)
+        material = torch.ones(gid.numel(), dtype=torch.bool, device=x.device)
+        P_g = sum(beam_power(gx, material, b, t, self.dx) for b in self.beams)
+        P = torch.zeros(rows.numel(), dtype=x.dtype, device=x.device)
+        if gid.numel():
+            pos = torch.searchsorted(gid, ids).clamp_max(gid.numel() - 1)
+            hit = cyl & (gid.index_select(0, pos) == ids)
+            P = torch.where(hit, P_g.index_select(0, pos), P)
         return embed(rows, P, state.n)
 
     def lit_mask(self, state: ParticleState, t: float) -> torch.Tensor | None:
