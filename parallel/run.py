@@ -2,7 +2,7 @@
 
 Same CLI, outputs and checkpoints as one process: rank 0 writes one HDF5 file per snapshot
 (the owned particles of all ranks gathered in id order) and one XDMF, ``summary.json`` with
-the load imbalance (max / mean rank step time) before and after cost-weighted balancing,
+the load imbalance (max / mean over ranks of the work: step time less communication) before and after cost-weighted balancing,
 and one progress bar. Checkpoints are global (every per-particle array gathered by id,
 plus the clock, energy totals and RNG): a run restarts from one on any number of ranks,
 the neighbour tables rebuilt at the positions of the last rebuild (so the continued run

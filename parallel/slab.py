@@ -49,14 +49,39 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().numpy()
 
 
+class _TimedComm:
+    """An mpi4py communicator whose calls add their wall time to ``waited``: the time a
+    rank spends in communication (mostly waiting for slower ranks) is told apart from its
+    own work, so the load imbalance is measured on the work."""
+
+    def __init__(self, comm):
+        self._c = comm
+        self.waited = 0.0
+
+    def __getattr__(self, name):
+        f = getattr(self._c, name)
+        if not callable(f) or name.startswith("Get_"):
+            return f
+
+        def timed(*a, **k):
+            t = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                self.waited += time.perf_counter() - t
+        return timed
+
+
 class SlabComm:
     """The :class:`torchsph.comm.SerialComm` interface over MPI ranks (see the module doc)."""
 
     def __init__(self, search: float, skin: float, stages: int = 3, comm=None,
                  rebalance_every: int = 0, weights: dict | None = None):
-        self.c = comm or MPI.COMM_WORLD
+        self.c = _TimedComm(comm or MPI.COMM_WORLD)
         self.rank, self.size = self.c.Get_rank(), self.c.Get_size()
         self.halo = stages * search + skin
+        self.search = search
+        self.depth = stages - 1  # ghost levels whose continuity the owned rows depend on
         self.n_owned = 0
         self.bounds = None  # (size + 1,) slab boundaries in x
         self.send = []  # per rank: local rows (owned) whose copies are ghosts there
@@ -64,8 +89,8 @@ class SlabComm:
         self.rebalance_every = rebalance_every
         self.weights = weights or {"fluid": 4.0, "solid": 1.0, "idle": 0.1}
         self.n_migrations = 0
-        self.step_time = 0.0  # wall time of the last step on this rank
-        self.imbalance = []  # max / mean step time over ranks, per migration
+        self.busy = 0.0  # this rank's work (step wall time less communication) since the last migration
+        self.imbalance = []  # per migration: max / mean over ranks of the work since the last one
         self._owned_cache = (None, None)
         self._t0 = None
 
@@ -76,6 +101,14 @@ class SlabComm:
         if self._owned_cache[0] != key:
             self._owned_cache = (key, torch.arange(n, device=sim.state.device) < self.n_owned)
         return self._owned_cache[1]
+
+    def levels(self, sim) -> torch.Tensor:
+        x = sim.state.x[:, 0]
+        lo, hi = float(self.bounds[self.rank]), float(self.bounds[self.rank + 1])
+        d = (lo - x).clamp_min(0.0) + (x - hi).clamp_min(0.0)
+        lvl = torch.ceil(d / self.search).long().clamp_min(1)
+        lvl[: self.n_owned] = 0
+        return lvl
 
     def reduce_measure(self, vals):
         v = np.array([vals[0], vals[1], -vals[2], vals[3]], dtype=np.float64)
@@ -175,10 +208,10 @@ class SlabComm:
             raise CaseError("MPI runs do not yet support " + ", ".join(why) + "; run this case in one process")
 
     def begin_step(self, sim):
-        t = time.perf_counter()
+        t, w = time.perf_counter(), self.c.waited
         if self._t0 is not None:
-            self.step_time = t - self._t0
-        self._t0 = t
+            self.busy += (t - self._t0[0]) - (w - self._t0[1])
+        self._t0 = (t, w)
         if sim._rebuilt:
             self.migrate(sim)
 
@@ -258,7 +291,8 @@ class SlabComm:
         """After a rebuild: particles move to the rank of their slab, ghosts are chosen anew,
         the neighbour table is carried over by particle id, the caches restored."""
         self.n_migrations += 1
-        times = self.c.allgather(self.step_time)
+        times = self.c.allgather(self.busy)
+        self.busy = 0.0
         if max(times) > 0:
             self.imbalance.append(max(times) / (sum(times) / len(times)))
         arrays = sim.particle_arrays()

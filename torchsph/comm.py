@@ -19,6 +19,11 @@ class SerialComm:
         """Mask of the particles this process owns (None: all)."""
         return None
 
+    def levels(self, sim) -> torch.Tensor | None:
+        """Per particle: 0 if owned, else k for a ghost within k search radii of this
+        process's domain (None: all owned)."""
+        return None
+
     def reduce_measure(self, vals: list[float]) -> list[float]:
         """[vmax, amax, rho_min, compression]: max, max, min, max over processes."""
         return vals

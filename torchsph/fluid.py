@@ -165,18 +165,32 @@ class WeaklyCompressibleFluid:
         return self.prm.rho0 * base ** (1.0 / g)
 
     # --- pair subsets, refreshed when the neighbour list changes -----------
-    def select_pairs(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor):
+    def select_pairs(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor,
+                     level: torch.Tensor | None = None, depth: int = 2):
         """Rows of the neighbour table for fluid particles (any source) and for wall
-        particles (fluid sources only, by mask). Walls never get a momentum row."""
+        particles (fluid sources only, by mask). Walls never get a momentum row.
+
+        ``level`` (a decomposed run: 0 for the particles this process owns, k for ghosts
+        within k search radii of its slab) keeps only the rows the owned particles' step
+        depends on: momentum on level 0, continuity (hence pressure) on levels <= ``depth``
+        (2: pressure -> wall extrapolation -> force; 4 with the surface chain colour
+        gradient -> normals -> smoothed normals -> curvature), wall extrapolation on levels
+        <= depth - 1; ghosts take their owners' accelerations afterwards."""
         fluid = state.phase == Phase.FLUID
         self.fluid_mask = fluid
-        self.rows_f = torch.nonzero(fluid).squeeze(1)
+        if level is None:
+            self.rows_f = torch.nonzero(fluid).squeeze(1)
+            self.n_momentum = self.rows_f.numel()
+        else:  # momentum rows first, then the rows that need only the continuity sum
+            own = torch.nonzero(fluid & (level == 0)).squeeze(1)
+            self.rows_f = torch.cat([own, torch.nonzero(fluid & (level > 0) & (level <= depth)).squeeze(1)])
+            self.n_momentum = own.numel()
         self.nb_f = nb.index_select(0, self.rows_f)
         self.ff_mask = gather_nb(fluid, self.nb_f).to(state.dtype)  # source is fluid
         self.has_walls = bool((~fluid).any())
         if self.has_walls:
             # wall rows: only walls with a fluid neighbour, fluid sources packed first
-            rows_w = torch.nonzero(~fluid).squeeze(1)
+            rows_w = torch.nonzero(~fluid if level is None else ~fluid & (level < depth)).squeeze(1)
             mw = mask.index_select(0, rows_w) & gather_nb(fluid, nb.index_select(0, rows_w))
             cnt = mw.sum(1)
             keep = cnt > 0
@@ -207,9 +221,15 @@ class WeaklyCompressibleFluid:
         if self.has_walls:
             p, u_visc = self._wall_extrapolation(state, p, v_eval, g)
         state.p = p
-        rows, n = self.rows_f, state.n
-        a, a_v, dx, dWr = self._fns["momentum"](x, u_visc, state.rho, p, state.m, rows, self.nb_f,
+        rows, n, k = self.rows_f, state.n, self.n_momentum
+        nb_m = self.nb_f
+        if k < rows.numel():  # decomposed: the ghost rows get only the pair geometry (continuity)
+            rows, nb_m = rows[:k], nb_m[:k]
+        a, a_v, dx, dWr = self._fns["momentum"](x, u_visc, state.rho, p, state.m, rows, nb_m,
                                                 prm.eta, self.kernel, self.h, self.domain, terms)
+        if k < self.rows_f.numel():
+            dx_g, r_g = pair_geometry(x, self.rows_f[k:], self.nb_f[k:], self.domain, self.h)
+            dx, dWr = torch.cat([dx, dx_g]), torch.cat([dWr, self.kernel.dwdr(r_g, self.h) / r_g])
         self._geom = (dx, dWr, state.rho)
         body = g + torch.as_tensor(prm.body_force, dtype=x.dtype, device=x.device)
         a = embed(rows, a, n)
@@ -223,13 +243,14 @@ class WeaklyCompressibleFluid:
                  "body": torch.where(fluid, body.expand_as(a), zero)}
         return dvdt, parts
 
-    def continuity(self, v: torch.Tensor, m: torch.Tensor, dx0: float = 0.0):
+    def continuity(self, v: torch.Tensor, m: torch.Tensor, dx0: float = 0.0, rho: torch.Tensor | None = None):
         """drho/dt (3.7) (+ density diffusion) on the pair geometry of the last
         :meth:`momentum` call, with velocities ``v`` (walls: their prescribed velocity),
         and the particle-shifting displacement when shifting is on (else None): it moves
         particles down the gradient of the particle concentration, which keeps the
         distribution isotropic where the flow stretches it; fluid only, at most 0.1 dx0."""
-        dx, dWr, rho = self._geom
+        dx, dWr, rho_geom = self._geom
+        rho = rho_geom if rho is None else rho  # the current densities (a decomposition refreshed its ghosts')
         prm = self.prm
         W0 = float(self.kernel.w(torch.tensor(dx0, dtype=torch.float64), self.h)) if dx0 > 0 else 1.0
         dr, sh = self._fns["continuity"](v, m, rho, self.rows_f, self.nb_f, dx, dWr, self.ff_mask,

@@ -228,9 +228,11 @@ class Simulation:
         return self.active_set.active if self.active_set is not None else None
 
     def _select(self):
-        for phys in (self.fluid, self.surface):
-            if phys is not None:
-                phys.select_pairs(self.state, self.nl.nb, self.nl.mask)
+        if self.fluid is not None:
+            self.fluid.select_pairs(self.state, self.nl.nb, self.nl.mask, level=self.comm.levels(self),
+                                    depth=getattr(self.comm, "depth", 2))
+        if self.surface is not None:
+            self.surface.select_pairs(self.state, self.nl.nb, self.nl.mask)
         if self.thermal is not None:
             self.thermal.owned = self.comm.owned(self)
             self.thermal.select_pairs(self.state, self.nl.nb, self.nl.mask, active=self.active_mask,
@@ -339,7 +341,7 @@ class Simulation:
         shift = None
         if self.fluid is not None:
             self.drhodt, shift = self.fluid.continuity(  # at x_n, with u_{n+1/2}
-                v_half, s.m, self.dx if self.fluid.prm.shifting > 0 else 0.0)
+                v_half, s.m, self.dx if self.fluid.prm.shifting > 0 else 0.0, rho=s.rho)
             s.rho = s.rho + dt * self.drhodt
         step = dt * torch.where(fm, v_half, s.v)  # 1e (rigid bodies move with their velocity)
         if shift is not None:
@@ -404,9 +406,13 @@ class Simulation:
     def _reuse_conduction(self, t_new: float) -> bool:
         """Multi-rate conduction: the conduction power is re-evaluated only once the time since
         its last evaluation would exceed f x the thermal limit (f = numerics.conduction_reuse);
-        in between it is held. Held rates are the explicit Euler step of size <= f x limit for
-        the diffusion, stable for f <= 1 and conservative (the pair exchange stays
-        antisymmetric); the beam, losses and phase change are evaluated every step. With the
+        in between it is held, except on the rows where it changes fast (melt, lit particles
+        and their neighbours: :meth:`Conduction.fast_rows`), which are evaluated every step.
+        Held rates are the explicit Euler step of size <= f x limit for the diffusion, stable
+        for f <= 1; the pair exchange stays antisymmetric inside each group, and what the
+        fresh and held rates across the groups' boundary (in solid, one kernel support from
+        the melt) do not balance is booked in the energy balance (``conduction``); the beam,
+        losses and phase change are evaluated every step. With the
         melt's acoustic step 300x below the thermal limit, f = 0.1 evaluates conduction about
         once in 30 steps. Scenes stepping at the thermal limit (no fluid) evaluate it every step."""
         th = self.thermal

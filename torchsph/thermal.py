@@ -301,6 +301,14 @@ class Conduction:
         however narrow the mushy interval is compared with one step's temperature change."""
         if reuse_conduction and self.q_cond is not None:  # multi-rate: see Simulation.cond_reuse
             q = self.q_cond
+            fast = self.fast_rows(state)  # next to melt or a beam: evaluated every step
+            if fast.numel():
+                if self._zeta is None:
+                    self._zeta = self.zeta(state)
+                rows = self.rows.index_select(0, fast)
+                qf = self._fn(state.x, self.wall_temperature(state, T), self.k, state.m, state.rho, self._zeta,
+                              rows, self.nb.index_select(0, fast), self.kernel, self.h, self.domain)
+                q = q.index_copy(0, rows, qf * (state.m / state.rho).index_select(0, rows))
         else:
             q = self.heat_rate(state, T) * (state.m / state.rho)
             if not per_particle:
@@ -324,6 +332,16 @@ class Conduction:
                   for k, v in parts.items()}
         totals.setdefault("beam", torch.zeros((), dtype=T.dtype, device=T.device))
         return P, totals
+
+    def fast_rows(self, state: ParticleState) -> torch.Tensor:
+        """Positions in ``rows`` of the particles whose conduction changes fast: melt, lit
+        particles, and every row with one of them among its neighbours."""
+        src = state.phase == Phase.FLUID
+        lit = getattr(self, "lit", None)
+        if lit is not None and lit.shape[0] == src.shape[0]:
+            src = src | lit
+        near = gather_nb(src, self.nb).any(1) | src.index_select(0, self.rows)
+        return torch.nonzero(near).squeeze(1)
 
     def beam_power(self, state: ParticleState, t: float, rows: torch.Tensor) -> torch.Tensor:
         """Power (W) each particle absorbs from all beams; only ``rows`` absorb or shadow
