@@ -282,6 +282,8 @@ class SlabComm:
             if rows.numel() == 0:
                 continue
             for k, v in g.items():
+                if k not in arrays:  # a lazily built cache this rank has not built: it builds it whole
+                    continue
                 base = changed.get(k, arrays[k])
                 changed[k] = base.index_copy(0, rows, torch.as_tensor(v, dtype=base.dtype))
         if changed:
@@ -295,7 +297,7 @@ class SlabComm:
         self.busy = 0.0
         if max(times) > 0:
             self.imbalance.append(max(times) / (sum(times) / len(times)))
-        arrays = sim.particle_arrays()
+        arrays, dropped = self._common_arrays(sim)
         old_ids = arrays["state.id"]
         nb_ids = old_ids[sim.nl.nb]  # neighbour table in particle ids
         nb_mask = sim.nl.mask
@@ -327,6 +329,7 @@ class SlabComm:
         sim.nl.mask = mask
         del new["_nb"], new["_mask"]
         sim.set_particle_arrays(new)
+        self._clear(sim, dropped)
         caches = {k_: v for k_, v in new.items() if k_.startswith(("th.", "sf."))}
         sim._select()
         sim.set_particle_arrays(caches)  # _select reset the per-rebuild caches: restore them
@@ -336,9 +339,26 @@ class SlabComm:
             sim.dvdt = saved
 
     # --- gathering ----------------------------------------------------------------------------
-    def gather_owned(self, sim, names=None) -> dict[str, np.ndarray] | None:
-        """Rank 0: the owned rows of all ranks' per-particle arrays, in particle-id order."""
+    def _common_arrays(self, sim):
+        """The per-particle arrays every rank holds (lazily built caches may exist on some
+        ranks only), and the names of the ones left out here."""
         arrays = sim.particle_arrays()
+        common = set.intersection(*self.c.allgather(set(arrays)))
+        return {k: v for k, v in arrays.items() if k in common}, [k for k in arrays if k not in common]
+
+    @staticmethod
+    def _clear(sim, names):
+        """Caches some ranks lacked: dropped everywhere, each rank rebuilds them whole."""
+        for k in names:
+            owner, name = k.split(".", 1)
+            obj = {"th": sim.thermal, "sf": sim.surface_model}.get(owner)
+            if obj is not None:
+                setattr(obj, name, None)
+
+    def gather_owned(self, sim, names=None) -> dict[str, np.ndarray] | None:
+        """Rank 0: the owned rows of all ranks' per-particle arrays, in particle-id order
+        (the arrays every rank holds)."""
+        arrays, _ = self._common_arrays(sim)
         names = names or list(arrays)
         mine = {k: _np(arrays[k][: self.n_owned]) for k in names if k in arrays}
         got = self.c.gather(mine, root=0)
