@@ -38,6 +38,11 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict):
     arrays = comm.gather_owned(sim)
     sums = comm.sum([float(v) for v in sim.energy.values()] + [float(v) for v in sim._heat.values()]
                     + [float(sim._E0)]) if sim.thermal is not None else []
+    feeder = None
+    if sim.feeder is not None:  # the contact counts are each rank's own: the checkpoint holds the totals
+        feeder = sim.feeder.state_dict()
+        feeder["welded_kg"], feeder["n_welded"] = comm.sum([sim.feeder.welded_kg, sim.feeder.n_welded])
+        feeder["n_welded"] = int(feeder["n_welded"])
     if comm.rank != 0:
         return
     ek, hk = list(sim.energy), list(sim._heat) if sim.thermal is not None else []
@@ -47,7 +52,7 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict):
          "E0": sums[-1] if sums else None, "t_cond": getattr(sim.thermal, "t_cond", None),
          "n_builds": sim.nl.n_builds, "rng": torch.get_rng_state(), "extra": extra, "written": time.time(),
          "body_velocity": sim.body_velocity.cpu(), "stale": sim._stale,
-         "feeder": sim.feeder.state_dict() if sim.feeder is not None else None}
+         "feeder": feeder}
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
         torch.save(d, f)
@@ -74,6 +79,8 @@ def restore_global(sim, comm, d: dict, chash: str, path: str):
         sim._stale = d["stale"]
     if sim.feeder is not None and d.get("feeder") is not None:
         sim.feeder.load_state_dict(d["feeder"])
+        if comm.rank != 0:  # the totals stay on rank 0; each rank counts its own from here
+            sim.feeder.welded_kg, sim.feeder.n_welded = 0.0, 0
     sim.t, sim.step = d["t"], d["step"]
     caches = {k: v for k, v in local.items() if k.startswith(("th.", "sf."))}
     sim._select()
@@ -143,6 +150,7 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
     def snapshot():
         g = comm.gather_owned(sim, [f"state.{f}" for f in ("x", "v", "rho", "m", "p", "T", "T_peak", "phase",
                                                               "id", "body")])
+        welded = comm.sum([sim.feeder.welded_kg])[0] if sim.feeder is not None else None
         if not root:
             return
         st = _state_from(g)
@@ -150,7 +158,8 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
             from torchsph.deposition import measure
             sc = cfg["scene"]
             deposit.append(measure(st, scene.info, sim.t, sc["substrate_velocity_m_s"][0], sc["wire_feed_m_s"],
-                                   cfg["fluid"]["rho0_kg_m3"], cfg["thermal"]["liquidus_K"], scene.dx))
+                                   cfg["fluid"]["rho0_kg_m3"], cfg["thermal"]["liquidus_K"], scene.dx,
+                                   welded_kg=welded))
             sio.write_json(out_dir / "deposit.json", deposit)
         name = f"snap_{len(snaps):05d}.h5"
         sio.write_snapshot(out_dir / name, st, sim.t, sim.step)

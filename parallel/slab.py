@@ -203,6 +203,8 @@ class SlabComm:
         why = []
         if sim.domain.periodic[0]:
             why.append("a periodic x axis (the slabs' axis)")
+        if sim.surface is not None and sim.surface.prm.zero_net_force:
+            why.append("surface.zero_net_force (a resultant over the whole surface)")
         if why:
             from torchsph.config import CaseError
             raise CaseError("MPI runs do not yet support " + ", ".join(why) + "; run this case in one process")

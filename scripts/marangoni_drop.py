@@ -33,16 +33,17 @@ def main():
     t_end = args.t_end or cfg["run"]["t_end_s"]
     dx = scene.dx
     t0 = time.perf_counter()
-    print("| t (s) | centre u_z (mm/s) | max |u| (mm/s) | T max (K) |")
-    print("|---|---|---|---|")
+    print("| t (s) | centre u_z (mm/s) | max |u| (mm/s) | T max (K) | drop's mean u_z (mm/s) |")
+    print("|---|---|---|---|---|")
     for k in range(1, args.samples + 1):
         run_steps(sim, t_end=t_end * k / args.samples)
         s = sim.state
         c = s.x.mean(0)
         near = (s.x - c).norm(dim=-1) < 2 * dx
         uc = s.v[near].mean(0)
+        u_com = (s.m.unsqueeze(-1) * s.v).sum(0) / s.m.sum()
         print(f"| {sim.t:.4f} | {float(uc[2]) * 1e3:.3f} | {float(s.v.norm(dim=-1).max()) * 1e3:.3f} | "
-              f"{float(s.T.max()):.0f} |", flush=True)
+              f"{float(s.T.max()):.0f} | {float(u_com[2]) * 1e3:.3g} |", flush=True)
     s = sim.state
     c = s.x.mean(0)
     line = ((s.x[:, 1] - c[1]).abs() < dx) & ((s.x[:, 2] - c[2]).abs() < dx)

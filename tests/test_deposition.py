@@ -75,6 +75,40 @@ def test_unmelted_wire_reaching_the_substrate_stops_with_a_diagnosis():
     assert sim.t < 0.5e-3 / 0.3  # stopped in the step that took it below the top
 
 
+def test_refrozen_wire_material_welds_to_the_substrate_and_unmelted_wire_still_stops():
+    """wire_contact = "weld": wire-body material that has melted before (peak temperature
+    above the liquidus; here the outer ring of the bottom layers, marked so by hand) joins the
+    substrate where it reaches into it and moves with it; its mass is counted once and the
+    total mass is unchanged. The never-melted core behind it still stops the run."""
+    from torchsph.deposition import SUBSTRATE
+    from torchsph.simulation import SimulationError
+
+    cfg = small("scene.source_layout=\"none\"", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=0.25e-3",
+                "scene.substrate_velocity_m_s=[0.015, 0.0, 0.0]")
+    scene, sim = make_simulation(cfg)
+    s = sim.state
+    wire = s.body == WIRE
+    r = s.x[:, :2].norm(dim=1)
+    T_L = cfg["thermal"]["liquidus_K"]
+    zb = float(s.x[wire, 2].min())
+    collar = wire & (r > 0.3e-3) & (s.x[:, 2] < zb + 3.75e-4)  # the two bottom layers' outer ring
+    s.T_peak = torch.where(collar, torch.full_like(s.T_peak, T_L + 100.0), s.T_peak)
+    m0, n0, ids = float(s.m.sum()), s.n, s.id[collar].clone()
+    assert ids.numel() >= 8
+    with pytest.raises(SimulationError, match="solid wire reached into the substrate"):
+        run_steps(sim, t_end=0.01)
+    s = sim.state
+    welded = torch.isin(s.id, ids)
+    feeder = scene.info["feeder"]
+    assert feeder.n_welded == int(welded.sum()) == ids.numel()
+    assert feeder.welded_kg == pytest.approx(float(s.m[welded].sum()), rel=1e-12)
+    assert bool((s.body[welded] == SUBSTRATE).all())
+    assert torch.allclose(s.v[welded], torch.tensor([0.015, 0.0, 0.0], dtype=s.dtype))
+    assert float(s.m[s.id < n0].sum()) == pytest.approx(m0, rel=1e-12)  # ids 0..n0-1 at the start
+    assert s.id.unique().numel() == s.n
+    assert float(s.x[welded, 2].max()) < -0.5 * 2.5e-4  # welded once they reached into the substrate
+
+
 def test_sources_are_aimed_at_the_tip_in_the_declared_layout():
     for layout, axis in (("along", 0), ("perpendicular", 1)):
         cfg = small(f"scene.source_layout=\"{layout}\"", "scene.source_azimuth_deg=30.0")

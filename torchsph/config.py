@@ -199,6 +199,9 @@ SURFACE = {
     "recoil": Key("bool", default=False, doc="recoil pressure p_v(T) (2.6); vapour law from [thermal]"),
     "threshold": Key("float", default=0.05, gt=0, lt=1,
                      doc="|grad c| h above which a particle is on the free surface"),
+    "zero_net_force": Key("bool", default=False,
+                          doc="remove the discrete surface forces' resultant (a free body of liquid "
+                              "only, e.g. a drop: on a closed surface the continuum forces have none)"),
 }
 
 TOP = ("scene", "fluid", "thermal", "beam", "surface", "numerics", "run", "preview")

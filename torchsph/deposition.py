@@ -43,7 +43,8 @@ class WireFeeder:
     rho0 (pi d^2 / 4) dx / n_layer: the fed mass flux is exactly rho0 (pi d^2 / 4) V."""
 
     def __init__(self, layer_xy: torch.Tensor, z0: float, n_layers: int, dx: float, speed: float,
-                 mass: float, rho0: float, T0: float, next_id: int, start: float = 0.0):
+                 mass: float, rho0: float, T0: float, next_id: int, start: float = 0.0,
+                 contact: str = "stop", T_melt: float | None = None):
         self.layer_xy = layer_xy
         self.z0, self.K, self.dx, self.speed = z0, n_layers, dx, speed
         self.start = start  # the feed starts at this time (the sources may preheat first)
@@ -51,6 +52,8 @@ class WireFeeder:
         self.mass, self.rho0, self.T0 = mass, rho0, T0
         self.next_id = next_id
         self.n_fed = 0  # layers added so far
+        self.contact, self.T_melt = contact, T_melt  # see check_contact
+        self.welded_kg, self.n_welded = 0.0, 0  # refrozen wire material welded to the substrate
 
     @property
     def area(self) -> float:
@@ -87,28 +90,54 @@ class WireFeeder:
         return self.layers(js, t)
 
     def check_contact(self, sim):
-        """The wire is rigid until it melts: if solid wire reaches into the solid substrate
-        (below its original top face) the sources did not melt the feed, and the run
-        stops with a diagnosis rather than letting two rigid bodies overlap."""
+        """The wire is rigid until it melts. Solid wire below the substrate's original top
+        face (by more than half a spacing) is handled by ``contact``:
+
+        - wire that has never melted (peak temperature <= liquidus) means the sources do not
+          melt the feed before it arrives: the run stops with a diagnosis rather than let two
+          rigid bodies overlap;
+        - with ``contact = "weld"``, wire-body material that has melted and frozen back onto
+          the wire (a collar of melt that ran up the wire's unlit side) joins the substrate
+          where it touches it and moves with it from then on (its mass is counted in
+          ``welded_kg``); with ``"stop"`` it stops the run like unmelted wire."""
         s = sim.state
-        z = torch.where((s.body == WIRE) & (s.phase == Phase.SOLID), s.x[:, 2],
-                        torch.full_like(s.x[:, 2], math.inf))
-        zmin, k = torch.min(z, 0)
-        if float(zmin) < -0.5 * self.dx:  # one sync per step; the rest only on failure
-            k = int(k)
-            from .simulation import SimulationError
-            raise SimulationError(
-                f"step {sim.step}, t = {sim.t:.6g} s: solid wire reached into the substrate (particle id "
-                f"{int(s.id[k])}, z = {float(z[k]):.4g} m, T = {float(s.T[k]):.1f} K): the sources do not "
-                f"melt the feed ({self.speed:g} m/s) before it arrives; raise the source power, aim the "
-                "sources lower (source_aim_height_m), start the wire higher (wire_gap_m) or feed slower")
+        low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < -0.5 * self.dx)
+        if not bool(low.any()):  # one sync per step; the rest only on contact
+            return
+        if self.contact == "weld" and self.T_melt is not None:
+            weld = low & (s.T_peak > self.T_melt)
+            if bool(weld.any()):
+                s.body = torch.where(weld, torch.full_like(s.body, SUBSTRATE), s.body)
+                s.v = torch.where(weld.unsqueeze(-1), sim.body_velocity[SUBSTRATE], s.v)
+                sim._new_body_velocity = True  # and keep it at the step's end
+                own = sim.comm.owned(sim)
+                mine = weld if own is None else weld & own
+                self.welded_kg += float(s.m[mine].sum())
+                self.n_welded += int(mine.sum())
+                low = low & ~weld
+                if not bool(low.any()):
+                    return
+        z = torch.where(low, s.x[:, 2], torch.full_like(s.x[:, 2], math.inf))
+        k = int(torch.argmin(z))
+        from .simulation import SimulationError
+        what = ("solid wire reached into the substrate" if float(s.T_peak[k]) <= (self.T_melt or math.inf)
+                else "wire material that melted and froze back onto the wire reached into the substrate "
+                     "(scene.wire_contact = \"weld\" lets it join the substrate)")
+        raise SimulationError(
+            f"step {sim.step}, t = {sim.t:.6g} s: {what} (particle id {int(s.id[k])}, z = {float(z[k]):.4g} m, "
+            f"r = {float(s.x[k, :2].norm()):.4g} m from the wire axis, T = {float(s.T[k]):.1f} K, peak "
+            f"{float(s.T_peak[k]):.1f} K): the sources do not melt the feed ({self.speed:g} m/s) before it "
+            "arrives; raise the source power, aim the sources lower (source_aim_height_m), start the wire "
+            "higher (wire_gap_m) or feed slower")
 
     def state_dict(self) -> dict:
-        return {"n_fed": self.n_fed, "next_id": self.next_id, "started": self.started}
+        return {"n_fed": self.n_fed, "next_id": self.next_id, "started": self.started,
+                "welded_kg": self.welded_kg, "n_welded": self.n_welded}
 
     def load_state_dict(self, d: dict):
         self.n_fed, self.next_id = d["n_fed"], d["next_id"]
         self.started = d.get("started", self.start <= 0.0)
+        self.welded_kg, self.n_welded = d.get("welded_kg", 0.0), d.get("n_welded", 0)
 
 
 def source_beams(sc: dict) -> list[dict]:
@@ -153,7 +182,8 @@ def build(cfg, dtype, device):
     area = math.pi * sc["wire_diameter_m"] ** 2 / 4
     K = max(round(sc["wire_length_m"] / dx), 1)
     feeder = WireFeeder(xy, sc["wire_gap_m"], K, dx, sc["wire_feed_m_s"], rho0 * area * dx / xy.shape[0],
-                        rho0, T0, next_id=xs.shape[0], start=sc["wire_feed_start_s"])
+                        rho0, T0, next_id=xs.shape[0], start=sc["wire_feed_start_s"],
+                        contact=sc["wire_contact"], T_melt=cfg["thermal"]["liquidus_K"] if "thermal" in cfg else None)
     wire = feeder.layers(torch.arange(K, device=device), 0.0)
     st = ParticleState.cat([sub, wire])
     hi_z = sc["wire_gap_m"] + K * dx
@@ -191,7 +221,7 @@ def check(cfg):
 
 
 def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: float, rho0: float,
-            T_liquidus: float, dx: float, bin_m: float | None = None) -> dict:
+            T_liquidus: float, dx: float, bin_m: float | None = None, welded_kg: float | None = None) -> dict:
     """Deposit and melt-pool measures at time t.
 
     - ``added_area_m2``: the bead's added cross-section per substrate-frame x bin, from mass:
@@ -201,6 +231,8 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
       the feeder added (equal to within one layer); ``wire_melted_kg``, the wire-origin mass
       no longer in the solid wire, against ``deposit_kg``, the mass over the substrate's
       own in all bins (the difference is material that left the substrate's x range);
+      ``welded_kg``: refrozen wire material that joined the substrate by contact
+      (:meth:`WireFeeder.check_contact`; ``welded_kg`` overrides the feeder's count);
     - the melt pool: particles above the liquidus, their volume and extents, peak temperature.
     """
     x, m = state.x, state.m
@@ -234,5 +266,6 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
             "expected_area_m2": info["wire_area"] * V_wire / V_sub if V_sub > 0 else math.inf,
             "wire_fed_kg": fed, "wire_inserted_kg": inserted, "wire_melted_kg": melted,
             "deposit_kg": float((mass_bin - sub_bin).sum()),
+            "welded_kg": feeder.welded_kg if welded_kg is None else welded_kg,
             "peak_temperature_K": float(state.T.max()), "melt_pool": pool,
             "n_liquid": int(hot.sum()), "n_particles": state.n}

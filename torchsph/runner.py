@@ -71,7 +71,8 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
         su = cfg["surface"]
         sp = SurfaceParams(tension=su["tension_N_m"], dtension_dT=su["dtension_dT_N_mK"],
                            reference_temperature=su["reference_temperature_K"],
-                           marangoni=su["marangoni"], recoil=su["recoil"], threshold=su["threshold"])
+                           marangoni=su["marangoni"], recoil=su["recoil"], threshold=su["threshold"],
+                           zero_net_force=su["zero_net_force"])
         surface = SurfaceForces(sp, kernel, h, scene.domain, nm["h_over_dx"],
                                 vapour_pressure=losses.vapour_pressure if thermal is not None else None,
                                 compile=compile)

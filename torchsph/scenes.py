@@ -405,6 +405,9 @@ SCENES: dict[str, SceneSpec] = {
          "wire_gap_m": Key("float", ge=0, doc="height of the wire tip above the substrate at t = 0"),
          "wire_feed_start_s": Key("float", default=0.0, ge=0,
                                   doc="the feed starts at this time (the sources preheat the tip first)"),
+         "wire_contact": Key("str", default="weld", choices=("stop", "weld"),
+                             doc="wire material that melted and froze back onto the wire, reaching the "
+                                 "substrate: stops the run, or joins the substrate (unmelted wire always stops)"),
          "source_layout": Key("str", choices=("along", "perpendicular", "none"),
                               doc="sources in the plane of travel (ahead/behind) or across it"),
          "source_count": Key("int", default=2, ge=1, doc="number of sources, evenly spaced in azimuth"),

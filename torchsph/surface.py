@@ -42,6 +42,7 @@ class SurfaceParams:
     marangoni: bool = True  # the tangential (I - n n) grad alpha force (when alpha' != 0)
     recoil: bool = False  # recoil pressure p_v(T) (needs a vapour-pressure law)
     threshold: float = 0.05  # |grad c| h above which a particle belongs to the surface
+    zero_net_force: bool = False  # remove the discrete forces' net resultant (a free body only)
 
 
 def gradient_moments(x, f, w, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
@@ -185,6 +186,15 @@ class SurfaceForces:
             pv = self.vapour_pressure(state.T.index_select(0, rows))
             parts["recoil"] = -pv.unsqueeze(-1) * n_out * per_area
             a = a + parts["recoil"]
+        if prm.zero_net_force:
+            # on a closed surface the continuum forces (tension with alpha(T) and Marangoni)
+            # have no resultant; the discrete ones keep a few per cent of the tangential total,
+            # which would accelerate a free drop as a whole: remove it as a uniform traction
+            mr = m.index_select(0, rows).unsqueeze(-1)
+            F = (mr * a).sum(0)
+            self.net_force = F
+            parts["zero_net_force"] = -(F / (mr * per_area).sum(0).clamp_min(1e-300)) * per_area
+            a = a + parts["zero_net_force"]
         out = embed(rows, a, n)
         if not terms:
             return out
