@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from torchsph import io as sio
-from torchsph.checkpoint import CheckpointError, config_hash
+from torchsph.checkpoint import CheckpointError, check_case, config_hash, physics, recorded_physics
 from torchsph.runner import RunStats, make_simulation, physics_plan, run_interruptible, snapshot_due
 from torchsph.state import ParticleState
 
@@ -33,7 +33,7 @@ def _state_from(arrays: dict) -> ParticleState:
     return ParticleState(**{k[6:]: torch.as_tensor(v) for k, v in arrays.items() if k.startswith("state.")})
 
 
-def save_global(sim, comm, path: Path, chash: str, extra: dict):
+def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | None = None):
     """Gather everything by particle id on rank 0 and write it atomically there."""
     arrays = comm.gather_owned(sim)
     sums = comm.sum([float(v) for v in sim.energy.values()] + [float(v) for v in sim._heat.values()]
@@ -46,7 +46,7 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict):
     if comm.rank != 0:
         return
     ek, hk = list(sim.energy), list(sim._heat) if sim.thermal is not None else []
-    d = {"format": FORMAT, "config_hash": chash, "t": sim.t, "step": sim.step,
+    d = {"format": FORMAT, "config_hash": chash, "physics": phys, "t": sim.t, "step": sim.step,
          "arrays": {k: torch.as_tensor(v) for k, v in arrays.items()},
          "energy": dict(zip(ek, sums[:len(ek)])), "heat": dict(zip(hk, sums[len(ek):len(ek) + len(hk)])),
          "E0": sums[-1] if sums else None, "t_cond": getattr(sim.thermal, "t_cond", None),
@@ -61,12 +61,10 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict):
     os.replace(tmp, path)
 
 
-def restore_global(sim, comm, d: dict, chash: str, path: str):
+def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | None = None):
     if d.get("format") != FORMAT:
         raise CheckpointError(f"--restart {path}: not a global (MPI) checkpoint; restart it without mpirun")
-    if d["config_hash"] != chash:
-        raise CheckpointError(f"--restart {path}: written for a different case (physics hash "
-                              f"{d['config_hash']} vs {chash}); only [run] may change on a restart")
+    check_case(d, cfg, path, recorded)
     dev, dt = sim.state.device, sim.state.dtype
     comm.bounds = None  # equal shares of the checkpoint's particles on this run's ranks
     local = comm.distribute({k: v for k, v in d["arrays"].items()}, first=True)
@@ -123,9 +121,12 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
     if t_end is None and steps is None:
         t_end, steps = run["t_end_s"], run["steps"]
     root = comm.rank == 0
+    # the physics the checkpoint's run recorded, read before config.json is overwritten
+    recorded = comm.c.bcast(recorded_physics(restart) if root and restart is not None else None, root=0)
     if root:
         out_dir.mkdir(parents=True, exist_ok=True)
-        sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
+        if restart is None:  # a restart writes it once the checkpoint is accepted
+            sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
     t_setup = time.perf_counter()
     scene, sim = make_simulation(cfg, comm=comm)
     setup_s = time.perf_counter() - t_setup
@@ -141,7 +142,9 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
             d = torch.load(restart, map_location="cpu", weights_only=False)
         except Exception as e:  # noqa: BLE001
             raise CheckpointError(f"--restart {restart}: not a readable checkpoint ({e})") from None
-        extra = restore_global(sim, comm, d, chash, str(restart))
+        extra = restore_global(sim, comm, d, cfg, str(restart), recorded)
+        if root:
+            sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
         snaps = [tuple(s) for s in extra.get("snaps", [])]
         next_out = [extra.get("next_out", interval)]
         deposit[:] = extra.get("deposit", [])
@@ -167,7 +170,8 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
         sio.write_xdmf(out_dir / "particles.xdmf", snaps, fdt)
 
     def write_checkpoint():
-        save_global(sim, comm, ck_path, chash, {"snaps": snaps, "next_out": next_out[0], "deposit": deposit})
+        save_global(sim, comm, ck_path, chash, {"snaps": snaps, "next_out": next_out[0], "deposit": deposit},
+                    phys=physics(cfg))
 
     if restart is None:
         snapshot()

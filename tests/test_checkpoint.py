@@ -45,9 +45,41 @@ def test_restart_refuses_a_different_case(tmp_path):
     _, cfg = load_case(CASES / "poiseuille_2d", ["scene.n_height=20"])
     run_case(cfg, CASES / "poiseuille_2d", tmp_path, steps=3, progress=False)
     _, cfg = load_case(CASES / "poiseuille_2d", ["scene.n_height=20", "fluid.viscosity_Pa_s=0.002"])
-    with pytest.raises(ckpt.CheckpointError, match="different case"):
+    with pytest.raises(ckpt.CheckpointError, match=r"different case: fluid.viscosity_Pa_s = 0.001 in the checkpoint, "
+                                                   r"0.002 now"):
         run_case(cfg, CASES / "poiseuille_2d", tmp_path, steps=3, progress=False,
                  restart=tmp_path / "checkpoint.pt")
+
+
+@pytest.mark.parametrize("carried", [True, False])
+def test_restart_accepts_a_checkpoint_from_before_a_key_was_added_at_its_default(tmp_path, carried):
+    """A newer version adds a physics key whose default keeps the old behaviour: a checkpoint
+    written without it (its recorded physics carried inside, or, for checkpoints that carry
+    none, in the run's config.json next to it) still restarts; the same key at another value
+    is refused by name."""
+    import json
+
+    _, cfg = load_case(CASES / "poiseuille_2d", ["scene.n_height=20"])
+    run_case(cfg, CASES / "poiseuille_2d", tmp_path, steps=3, progress=False)
+    path = tmp_path / "checkpoint.pt"
+    d = ckpt.load(path)
+    old = ckpt.physics(cfg)
+    del old["numerics"]["active_tolerance_K"]  # "the older version had no such key"
+    d["config_hash"] = ckpt.config_hash(old)
+    if carried:
+        d["physics"] = old
+    else:
+        d.pop("physics")
+        rec = json.loads((tmp_path / "config.json").read_text())
+        del rec["numerics"]["active_tolerance_K"]
+        (tmp_path / "config.json").write_text(json.dumps(rec))
+    torch.save(d, path)
+    _, cfg = load_case(CASES / "poiseuille_2d", ["scene.n_height=20", "numerics.active_tolerance_K=2.0"])
+    with pytest.raises(ckpt.CheckpointError, match=r"numerics.active_tolerance_K = \(absent\) in the checkpoint, 2.0 now"):
+        ckpt.check_case(d, cfg, str(path), None if carried else ckpt.recorded_physics(path))
+    _, cfg = load_case(CASES / "poiseuille_2d", ["scene.n_height=20"])
+    s = run_case(cfg, CASES / "poiseuille_2d", tmp_path, steps=2, progress=False, restart=path)
+    assert s["steps"] == 5
 
 
 def _start(args, env=None):

@@ -37,6 +37,69 @@ def config_hash(cfg: dict) -> str:
     return hashlib.sha256(json.dumps(phys, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+def physics(cfg: dict) -> dict:
+    """The physics sections of a case as plain JSON data (what a checkpoint records)."""
+    return json.loads(json.dumps({k: cfg.get(k) for k in PHYSICS_SECTIONS}, sort_keys=True, default=str))
+
+
+def _defaults(section: str, cfg: dict) -> dict:
+    from . import config as C
+    from .scenes import SCENES
+
+    if section == "scene":
+        spec = SCENES.get(cfg.get("scene", {}).get("type"))
+        schema = spec.schema if spec is not None else {}
+    else:
+        schema = {"fluid": C.FLUID, "thermal": C.THERMAL, "surface": C.SURFACE, "numerics": C.NUMERICS}.get(section, {})
+    return json.loads(json.dumps({k: key.default for k, key in schema.items()
+                                  if key.default is not C._REQUIRED}, default=str))
+
+
+def differences(old: dict, cfg: dict) -> list[str]:
+    """What differs between a checkpoint's recorded physics and a case, key by key. A key the
+    checkpoint lacks is not a difference when the case has it at its default (a key added by
+    a newer version of the code that keeps the old behaviour by default)."""
+    new, out = physics(cfg), []
+    for sec in PHYSICS_SECTIONS:
+        a, b = old.get(sec), new.get(sec)
+        if isinstance(a, dict) and isinstance(b, dict):
+            dflt = _defaults(sec, cfg)
+            for k in sorted(set(a) | set(b)):
+                if k not in a and k in dflt and dflt[k] == b[k]:
+                    continue
+                if a.get(k, "(absent)") != b.get(k, "(absent)"):
+                    out.append(f"{sec}.{k} = {a.get(k, '(absent)')} in the checkpoint, {b.get(k, '(absent)')} now")
+        elif a != b:
+            out.append(f"[{sec}] differs")
+    return out
+
+
+def check_case(d: dict, cfg: dict, path: str, recorded: dict | None = None):
+    """Refuse a checkpoint written for other physics, naming what differs. ``recorded``: the
+    physics of the run that wrote it, for checkpoints that do not carry their own (its
+    ``config.json``); it is trusted only if it hashes to the checkpoint's hash."""
+    if d.get("config_hash") == config_hash(cfg):
+        return
+    old = d.get("physics") or recorded
+    if old is not None and config_hash(old) == d.get("config_hash"):
+        diff = differences(old, cfg)
+        if not diff:
+            return
+        raise CheckpointError(f"--restart {path}: written for a different case: " + "; ".join(diff[:6])
+                              + ("; ..." if len(diff) > 6 else "") + "; only [run] may change on a restart")
+    raise CheckpointError(f"--restart {path}: written for a different case (physics hash "
+                          f"{d.get('config_hash')} vs {config_hash(cfg)}); only [run] may change on a restart")
+
+
+def recorded_physics(restart: str | Path) -> dict | None:
+    """The physics in the ``config.json`` next to a checkpoint (None if there is none)."""
+    p = Path(restart).parent / "config.json"
+    try:
+        return physics(json.loads(p.read_text()))
+    except (OSError, ValueError):
+        return None
+
+
 def _cpu(t):
     return t.detach().cpu() if isinstance(t, torch.Tensor) else t
 
@@ -73,11 +136,12 @@ def snapshot(sim) -> dict:
     return d
 
 
-def save(sim, path: str | Path, cfg_hash: str, extra: dict | None = None):
+def save(sim, path: str | Path, cfg_hash: str, extra: dict | None = None, phys: dict | None = None):
     """Write a checkpoint atomically (temp file, fsync, rename)."""
     path = Path(path)
     d = snapshot(sim)
     d["config_hash"] = cfg_hash
+    d["physics"] = phys
     d["written"] = time.time()
     d["extra"] = extra or {}
     tmp = path.with_name(path.name + ".tmp")
@@ -165,4 +229,5 @@ def restore(sim, d: dict, cfg_hash: str | None = None, path: str = "checkpoint")
     return d.get("extra", {})
 
 
-__all__ = ["CheckpointError", "config_hash", "load", "restore", "save"]
+__all__ = ["CheckpointError", "check_case", "config_hash", "differences", "load", "physics",
+           "recorded_physics", "restore", "save"]

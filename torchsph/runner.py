@@ -203,7 +203,9 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         from .config import CaseError
         raise CaseError("[run] device = \"cuda\": no CUDA device is available here (use cpu)")
     out_dir.mkdir(parents=True, exist_ok=True)
-    sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
+    recorded = ckpt.recorded_physics(restart) if restart is not None else None
+    if restart is None:  # a restart writes it once the checkpoint is accepted
+        sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
     t_setup = time.perf_counter()
     scene, sim = make_simulation(cfg)
     setup_s = time.perf_counter() - t_setup
@@ -217,7 +219,10 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     ck_path = out_dir / "checkpoint.pt"
     resumed = None
     if restart is not None:
-        extra = ckpt.restore(sim, ckpt.load(restart), chash, str(restart))
+        d = ckpt.load(restart)
+        ckpt.check_case(d, cfg, str(restart), recorded)
+        extra = ckpt.restore(sim, d, None, str(restart))
+        sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
         snaps = [tuple(x) for x in extra.get("snaps", [])]
         if sim.feeder is not None and "feeder" in extra:
             sim.feeder.load_state_dict(extra["feeder"])
@@ -247,7 +252,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     interrupted = [False]
 
     def write_checkpoint():
-        ckpt.save(sim, ck_path, chash, {"snaps": snaps, "next_out": next_out[0], "deposit": deposit,
+        ckpt.save(sim, ck_path, chash, phys=ckpt.physics(cfg), extra={"snaps": snaps, "next_out": next_out[0], "deposit": deposit,
                                         **({"feeder": sim.feeder.state_dict()} if sim.feeder else {})})
     bar = tqdm(total=steps if steps is not None else t_end, disable=not progress,
                unit="step" if steps is not None else "s", dynamic_ncols=True, mininterval=0.5,
