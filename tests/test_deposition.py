@@ -165,7 +165,7 @@ def test_deposition_restart_is_bit_for_bit(tmp_path):
     path = tmp_path / "c.pt"
     ckpt.save(a, path, ckpt.config_hash(cfg), {"feeder": a.feeder.state_dict()})
     _, b = make_simulation(cfg)
-    extra = ckpt.restore(b, ckpt.load(path), ckpt.config_hash(cfg))
+    extra = ckpt.restore(b, ckpt.load(path), cfg)
     b.feeder.load_state_dict(extra["feeder"])
     run_steps(b, steps=K - K // 2)
     assert b.state.n == ref.state.n > a.state.n - 1

@@ -168,11 +168,11 @@ def load(path: str | Path) -> dict:
     return d
 
 
-def restore(sim, d: dict, cfg_hash: str | None = None, path: str = "checkpoint"):
-    """Put a loaded checkpoint into a simulation built from the same case."""
-    if cfg_hash is not None and d.get("config_hash") != cfg_hash:
-        raise CheckpointError(f"--restart {path}: written for a different case (physics hash "
-                              f"{d.get('config_hash')} vs {cfg_hash}); only [run] may change on a restart")
+def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", recorded: dict | None = None):
+    """Put a loaded checkpoint into a simulation built from the same case (``cfg``: refused,
+    naming what differs, if the checkpoint was written for other physics; see :func:`check_case`)."""
+    if cfg is not None:
+        check_case(d, cfg, path, recorded)
     dev, dt = sim.state.device, sim.state.dtype
     st = d["state"]
     if st["x"].shape[1] != sim.state.dim:

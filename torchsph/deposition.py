@@ -120,15 +120,17 @@ class WireFeeder:
         z = torch.where(low, s.x[:, 2], torch.full_like(s.x[:, 2], math.inf))
         k = int(torch.argmin(z))
         from .simulation import SimulationError
-        what = ("solid wire reached into the substrate" if float(s.T_peak[k]) <= (self.T_melt or math.inf)
-                else "wire material that melted and froze back onto the wire reached into the substrate "
-                     "(scene.wire_contact = \"weld\" lets it join the substrate)")
-        raise SimulationError(
-            f"step {sim.step}, t = {sim.t:.6g} s: {what} (particle id {int(s.id[k])}, z = {float(z[k]):.4g} m, "
-            f"r = {float(s.x[k, :2].norm()):.4g} m from the wire axis, T = {float(s.T[k]):.1f} K, peak "
-            f"{float(s.T_peak[k]):.1f} K): the sources do not melt the feed ({self.speed:g} m/s) before it "
-            "arrives; raise the source power, aim the sources lower (source_aim_height_m), start the wire "
-            "higher (wire_gap_m) or feed slower")
+        where = (f"step {sim.step}, t = {sim.t:.6g} s: {{}} (particle id {int(s.id[k])}, z = {float(z[k]):.4g} m, "
+                 f"r = {float(s.x[k, :2].norm()):.4g} m from the wire axis, T = {float(s.T[k]):.1f} K, peak "
+                 f"{float(s.T_peak[k]):.1f} K)")
+        if float(s.T_peak[k]) <= (self.T_melt or math.inf):
+            raise SimulationError(where.format("solid wire reached into the substrate") + (
+                f": the sources do not melt the feed ({self.speed:g} m/s) before it arrives; raise the source "
+                "power, aim the sources lower (source_aim_height_m), start the wire higher (wire_gap_m) or "
+                "feed slower"))
+        raise SimulationError(where.format("wire material that melted and froze back onto the wire reached "
+                                           "into the substrate") + ": scene.wire_contact = \"weld\" lets it join "
+                                           "the substrate")
 
     def state_dict(self) -> dict:
         return {"n_fed": self.n_fed, "next_id": self.next_id, "started": self.started,

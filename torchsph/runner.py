@@ -219,9 +219,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     ck_path = out_dir / "checkpoint.pt"
     resumed = None
     if restart is not None:
-        d = ckpt.load(restart)
-        ckpt.check_case(d, cfg, str(restart), recorded)
-        extra = ckpt.restore(sim, d, None, str(restart))
+        extra = ckpt.restore(sim, ckpt.load(restart), cfg, str(restart), recorded)
         sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
         snaps = [tuple(x) for x in extra.get("snaps", [])]
         if sim.feeder is not None and "feeder" in extra:

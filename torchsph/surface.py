@@ -192,7 +192,6 @@ class SurfaceForces:
             # which would accelerate a free drop as a whole: remove it as a uniform traction
             mr = m.index_select(0, rows).unsqueeze(-1)
             F = (mr * a).sum(0)
-            self.net_force = F
             parts["zero_net_force"] = -(F / (mr * per_area).sum(0).clamp_min(1e-300)) * per_area
             a = a + parts["zero_net_force"]
         out = embed(rows, a, n)
