@@ -75,6 +75,32 @@ def test_unmelted_wire_reaching_the_substrate_stops_with_a_diagnosis():
     assert sim.t < 0.5e-3 / 0.3  # stopped in the step that took it below the top
 
 
+def test_solid_wire_may_dip_into_the_melt_pool_but_not_into_solid_substrate():
+    """The wire is fed into the pool: solid wire below the substrate's top is allowed where
+    the substrate around it is melt, and stops the run (with the diagnosis) as soon as it
+    is within one spacing of rigid substrate material."""
+    from torchsph.simulation import SimulationError
+    from torchsph.state import Phase
+
+    cfg = small("scene.source_layout=\"none\"", "scene.wire_gap_m=0.0")
+    scene, sim = make_simulation(cfg)
+    s, dx = sim.state, cfg["scene"]["dx_m"]
+    feeder = scene.info["feeder"]
+    wire = s.body == WIRE
+    s.x[wire, 2] -= 2.0 * dx  # the two bottom layers now lie below the top face
+    assert int((wire & (s.x[:, 2] < -0.5 * dx)).sum()) > 0
+    r = s.x[:, :2].norm(dim=1)
+    pool = ~wire & (r < 1.0e-3) & (s.x[:, 2] > -0.75e-3)  # a melt pool around and below the tip
+    s.phase = torch.where(pool, torch.full_like(s.phase, int(Phase.FLUID)), s.phase)
+    feeder.check_contact(sim)  # in the melt: no stop
+    assert not bool(feeder.touches_solid_substrate(s).any())
+    s.x[wire, 2] -= 2.0 * dx  # now its bottom layer is within one spacing of the pool's solid floor
+    touch = feeder.touches_solid_substrate(s)
+    assert bool(touch.any()) and float(s.x[touch, 2].max()) < -0.75e-3 + dx
+    with pytest.raises(SimulationError, match="solid wire reached into the substrate"):
+        feeder.check_contact(sim)
+
+
 def test_refrozen_wire_material_welds_to_the_substrate_and_unmelted_wire_still_stops():
     """wire_contact = "weld": wire-body material that has melted before (peak temperature
     above the liquidus; here the outer ring of the bottom layers, marked so by hand) joins the

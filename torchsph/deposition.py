@@ -91,7 +91,9 @@ class WireFeeder:
 
     def check_contact(self, sim):
         """The wire is rigid until it melts. Solid wire below the substrate's original top
-        face (by more than half a spacing) is handled by ``contact``:
+        face (by more than half a spacing) may dip into the melt pool; where it touches
+        solid substrate (within one spacing, :meth:`touches_solid_substrate`) it is
+        handled by ``contact``:
 
         - wire that has never melted (peak temperature <= liquidus) means the sources do not
           melt the feed before it arrives: the run stops with a diagnosis rather than let two
@@ -103,6 +105,9 @@ class WireFeeder:
         s = sim.state
         low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < -0.5 * self.dx)
         if not bool(low.any()):  # one sync per step; the rest only on contact
+            return
+        low = low & self.touches_solid_substrate(s)
+        if not bool(low.any()):  # solid wire dipping into the melt pool: it melts there
             return
         if self.contact == "weld" and self.T_melt is not None:
             weld = low & (s.T_peak > self.T_melt)
@@ -131,6 +136,24 @@ class WireFeeder:
         raise SimulationError(where.format("wire material that melted and froze back onto the wire reached "
                                            "into the substrate") + ": scene.wire_contact = \"weld\" lets it join "
                                            "the substrate")
+
+    def touches_solid_substrate(self, s) -> torch.Tensor:
+        """Mask of the solid wire particles below the substrate's top that lie within one
+        spacing of rigid (solid) substrate material: rigid body on rigid body. Wire
+        below the top but surrounded by melt is fed into the pool, as in the real process,
+        and melts there. Only the few low particles are compared, against the substrate
+        particles in their bounding box grown by one spacing."""
+        low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < -0.5 * self.dx)
+        idx = low.nonzero().squeeze(1)
+        xl = s.x[idx]
+        lo, hi = xl.min(0).values - self.dx, xl.max(0).values + self.dx
+        sub = ((s.body == SUBSTRATE) & (s.phase != Phase.FLUID) & (s.x >= lo).all(1) & (s.x <= hi).all(1))
+        xs = s.x[sub]
+        out = torch.zeros_like(low)
+        if xs.shape[0]:
+            near = (torch.cdist(xl, xs) < self.dx).any(1)
+            out[idx[near]] = True
+        return out
 
     def state_dict(self) -> dict:
         return {"n_fed": self.n_fed, "next_id": self.next_id, "started": self.started,
