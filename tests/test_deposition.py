@@ -94,6 +94,11 @@ def test_solid_wire_may_dip_into_the_melt_pool_but_not_into_solid_substrate():
     s.phase = torch.where(pool, torch.full_like(s.phase, int(Phase.FLUID)), s.phase)
     feeder.check_contact(sim)  # in the melt: no stop
     assert not bool(feeder.touches_solid_substrate(s).any())
+    side = ~wire & (r >= 1.0e-3) & (r < 1.0e-3 + dx) & (s.x[:, 2] > -0.75e-3)  # the pool's wall, beside
+    rim = float(r[wire].max())
+    s.x[side, :2] *= (rim + 0.75 * dx) / r[side].unsqueeze(1)  # now 3/4 of a spacing from the wire's rim
+    assert float(torch.cdist(s.x[side], s.x[wire]).min()) < dx
+    feeder.check_contact(sim)  # rigid solid beside the wire is not in its way
     s.x[wire, 2] -= 2.0 * dx  # now its bottom layer is within one spacing of the pool's solid floor
     touch = feeder.touches_solid_substrate(s)
     assert bool(touch.any()) and float(s.x[touch, 2].max()) < -0.75e-3 + dx

@@ -91,9 +91,8 @@ class WireFeeder:
 
     def check_contact(self, sim):
         """The wire is rigid until it melts. Solid wire below the substrate's original top
-        face (by more than half a spacing) may dip into the melt pool; where it touches
-        solid substrate (within one spacing, :meth:`touches_solid_substrate`) it is
-        handled by ``contact``:
+        face (by more than half a spacing) may dip into the melt pool; where it runs into
+        solid substrate (:meth:`touches_solid_substrate`) it is handled by ``contact``:
 
         - wire that has never melted (peak temperature <= liquidus) means the sources do not
           melt the feed before it arrives: the run stops with a diagnosis rather than let two
@@ -138,11 +137,13 @@ class WireFeeder:
                                            "the substrate")
 
     def touches_solid_substrate(self, s) -> torch.Tensor:
-        """Mask of the solid wire particles below the substrate's top that lie within one
-        spacing of rigid (solid) substrate material: rigid body on rigid body. Wire
-        below the top but surrounded by melt is fed into the pool, as in the real process,
-        and melts there. Only the few low particles are compared, against the substrate
-        particles in their bounding box grown by one spacing."""
+        """Mask of the solid wire particles below the substrate's top that run into rigid
+        (solid) substrate material: one lies within one spacing below them (in the way of
+        the feed) or within half a spacing anywhere (overlap); rigid solid beside the wire,
+        e.g. the wall of the pool it is fed into, does not count. Wire below the top but
+        surrounded by melt is fed into the pool, as in the real process, and melts there.
+        Only the few low particles are compared, against the substrate particles in their
+        bounding box grown by one spacing."""
         low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < -0.5 * self.dx)
         idx = low.nonzero().squeeze(1)
         xl = s.x[idx]
@@ -151,7 +152,9 @@ class WireFeeder:
         xs = s.x[sub]
         out = torch.zeros_like(low)
         if xs.shape[0]:
-            near = (torch.cdist(xl, xs) < self.dx).any(1)
+            r = torch.cdist(xl, xs)
+            below = (xl[:, 2:3] - xs[:, 2].unsqueeze(0)) > 0.5 * self.dx  # in the wire's way
+            near = ((r < 0.5 * self.dx) | ((r < self.dx) & below)).any(1)
             out[idx[near]] = True
         return out
 
