@@ -77,8 +77,8 @@ def test_unmelted_wire_reaching_the_substrate_stops_with_a_diagnosis():
 
 def test_solid_wire_may_dip_into_the_melt_pool_but_not_into_solid_substrate():
     """The wire is fed into the pool: solid wire below the substrate's top is allowed where
-    the substrate around it is melt, and stops the run (with the diagnosis) as soon as it
-    is within one spacing of rigid substrate material."""
+    the substrate around it is melt, and also beside the rigid wall of that pool; it stops
+    the run (with the diagnosis) as soon as rigid substrate is within one spacing below it."""
     from torchsph.simulation import SimulationError
     from torchsph.state import Phase
 
@@ -99,7 +99,11 @@ def test_solid_wire_may_dip_into_the_melt_pool_but_not_into_solid_substrate():
     s.x[side, :2] *= (rim + 0.75 * dx) / r[side].unsqueeze(1)  # now 3/4 of a spacing from the wire's rim
     assert float(torch.cdist(s.x[side], s.x[wire]).min()) < dx
     feeder.check_contact(sim)  # rigid solid beside the wire is not in its way
-    s.x[wire, 2] -= 2.0 * dx  # now its bottom layer is within one spacing of the pool's solid floor
+    floor = ~wire & (s.phase != int(Phase.FLUID))
+    s.x[wire, 2] -= 1.2 * dx  # its bottom layer 0.8 spacing above the pool's solid floor: in its way
+    assert float(torch.cdist(s.x[wire], s.x[floor]).min()) > 0.5 * dx  # not overlapping
+    assert bool(feeder.touches_solid_substrate(s).any())
+    s.x[wire, 2] -= 0.8 * dx  # now its bottom layer is on the pool's solid floor
     touch = feeder.touches_solid_substrate(s)
     assert bool(touch.any()) and float(s.x[touch, 2].max()) < -0.75e-3 + dx
     with pytest.raises(SimulationError, match="solid wire reached into the substrate"):

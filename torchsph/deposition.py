@@ -105,7 +105,7 @@ class WireFeeder:
         low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < -0.5 * self.dx)
         if not bool(low.any()):  # one sync per step; the rest only on contact
             return
-        low = low & self.touches_solid_substrate(s)
+        low = self.touches_solid_substrate(s, low)
         if not bool(low.any()):  # solid wire dipping into the melt pool: it melts there
             return
         if self.contact == "weld" and self.T_melt is not None:
@@ -136,21 +136,25 @@ class WireFeeder:
                                            "into the substrate") + ": scene.wire_contact = \"weld\" lets it join "
                                            "the substrate")
 
-    def touches_solid_substrate(self, s) -> torch.Tensor:
+    def touches_solid_substrate(self, s, low: torch.Tensor | None = None) -> torch.Tensor:
         """Mask of the solid wire particles below the substrate's top that run into rigid
         (solid) substrate material: one lies within one spacing below them (in the way of
         the feed) or within half a spacing anywhere (overlap); rigid solid beside the wire,
         e.g. the wall of the pool it is fed into, does not count. Wire below the top but
         surrounded by melt is fed into the pool, as in the real process, and melts there.
         Only the few low particles are compared, against the substrate particles in their
-        bounding box grown by one spacing."""
-        low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < -0.5 * self.dx)
+        bounding box grown by one spacing. ``low``: the mask of solid wire below the top,
+        if the caller has it."""
+        if low is None:
+            low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < -0.5 * self.dx)
         idx = low.nonzero().squeeze(1)
+        out = torch.zeros_like(low)
+        if idx.numel() == 0:
+            return out
         xl = s.x[idx]
         lo, hi = xl.min(0).values - self.dx, xl.max(0).values + self.dx
         sub = ((s.body == SUBSTRATE) & (s.phase != Phase.FLUID) & (s.x >= lo).all(1) & (s.x <= hi).all(1))
         xs = s.x[sub]
-        out = torch.zeros_like(low)
         if xs.shape[0]:
             r = torch.cdist(xl, xs)
             below = (xl[:, 2:3] - xs[:, 2].unsqueeze(0)) > 0.5 * self.dx  # in the wire's way
