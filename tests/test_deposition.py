@@ -62,7 +62,12 @@ def test_feed_can_start_late():
     assert float(sim.state.x[wire.nonzero()[0], 2]) == pytest.approx(8.0e-3 + 1.25e-4 - 0.3 * 0.010, abs=0.3 * 1.6e-3)
     sc = cfg["scene"]
     info = measure(sim.state, scene.info, sim.t, 0.0, 0.3, cfg["fluid"]["rho0_kg_m3"], 1753.15, sc["dx_m"])
-    assert info["wire_fed_kg"] == pytest.approx(cfg["fluid"]["rho0_kg_m3"] * math.pi * 1.2e-3**2 / 4 * 0.3 * 0.010)
+    # the fed length is the distance the wire moved (it starts with the first step after
+    # wire_feed_start_s), so it matches the feed clock to within one step
+    rhoA = cfg["fluid"]["rho0_kg_m3"] * math.pi * 1.2e-3**2 / 4
+    moved = 8.0e-3 + 1.25e-4 - float(sim.state.x[wire.nonzero()[0], 2])
+    assert info["wire_fed_kg"] == pytest.approx(rhoA * moved, rel=1e-9)
+    assert info["wire_fed_kg"] == pytest.approx(rhoA * 0.3 * (sim.t - 0.005), abs=rhoA * 0.3 * 2 * sim.choose_dt()[0])
 
 
 def test_unmelted_wire_reaching_the_substrate_stops_with_a_diagnosis():
@@ -73,6 +78,45 @@ def test_unmelted_wire_reaching_the_substrate_stops_with_a_diagnosis():
     with pytest.raises(SimulationError, match="solid wire reached into the substrate .* the sources do not melt"):
         run_steps(sim, t_end=0.01)
     assert sim.t < 0.5e-3 / 0.3  # stopped in the step that took it below the top
+
+
+def test_with_wire_stall_the_feed_waits_on_solid_substrate_and_goes_on_once_the_tip_melts():
+    """scene.wire_stall: unmelted wire that reaches solid substrate rests there (no stop, no
+    overlap growing), the fed length stops at the distance the wire moved, the stalled time is
+    counted; once the touching layer has melted the feed goes on at the feed speed."""
+    from torchsph.state import Phase
+
+    V, gap = 0.03, 0.1e-3  # V dt < dx / 4 (no sources: dt is the heating limit, ~1.5 ms)
+    cfg = small("scene.source_layout=\"none\"", f"scene.wire_feed_m_s={V}", f"scene.wire_gap_m={gap}",
+                "scene.wire_stall=true")
+    scene, sim = make_simulation(cfg)
+    feeder, dx = scene.info["feeder"], cfg["scene"]["dx_m"]
+    run_steps(sim, t_end=0.02)  # 0.6 mm of feed on the clock: the wire met the substrate at ~5 ms
+    s = sim.state
+    wire = (s.body == WIRE) & (s.phase == Phase.SOLID)
+    tip = float(s.x[wire, 2].min())
+    assert feeder.stalled and feeder.n_stalls == 1
+    # it rests on the top face: stopped in the step that took its centre below half a spacing up
+    assert 0.5 * dx - 2 * V * sim.choose_dt()[0] < tip < 0.5 * dx
+    assert feeder.fed == pytest.approx(gap + 0.5 * dx - tip, rel=1e-9)  # the distance it moved
+    assert feeder.stall_s == pytest.approx(0.02 - feeder.fed / V, abs=2 * sim.choose_dt()[0])
+    assert bool((s.v[wire, 2] == 0).all())
+    info = measure(s, scene.info, sim.t, 0.015, V, cfg["fluid"]["rho0_kg_m3"], 1753.15, dx)
+    assert info["wire_stalled_s"] == feeder.stall_s and info["wire_stalls"] == 1
+    assert info["wire_fed_kg"] == pytest.approx(cfg["fluid"]["rho0_kg_m3"] * scene.info["wire_area"] * feeder.fed)
+    run_steps(sim, steps=20)
+    assert float(s.x[(s.body == WIRE) & (s.phase == Phase.SOLID), 2].min()) == tip  # still resting
+    # melt the bottom layer: the wire is no longer blocked and moves on
+    bottom = wire & (s.x[:, 2] < tip + 0.5 * dx)
+    s.T = torch.where(bottom, torch.full_like(s.T, 1800.0), s.T)
+    s.T_peak = torch.maximum(s.T_peak, s.T)
+    fed0 = feeder.fed
+    run_steps(sim, steps=3)
+    assert not feeder.stalled
+    assert bool((s.phase[bottom] == Phase.FLUID).all())
+    assert feeder.fed > fed0
+    wire = (s.body == WIRE) & (s.phase == Phase.SOLID)
+    assert bool((s.v[wire, 2] == -V).all())
 
 
 def test_solid_wire_may_dip_into_the_melt_pool_but_not_into_solid_substrate():
@@ -112,7 +156,7 @@ def test_solid_wire_may_dip_into_the_melt_pool_but_not_into_solid_substrate():
 
 def test_refrozen_wire_material_welds_to_the_substrate_and_unmelted_wire_still_stops():
     """wire_contact = "weld": wire-body material that has melted before (peak temperature
-    above the liquidus; here the outer ring of the bottom layers, marked so by hand) joins the
+    above the liquidus; here the outer ring of the bottom layer, marked so by hand) joins the
     substrate where it reaches into it and moves with it; its mass is counted once and the
     total mass is unchanged. The never-melted core behind it still stops the run."""
     from torchsph.deposition import SUBSTRATE
@@ -126,7 +170,7 @@ def test_refrozen_wire_material_welds_to_the_substrate_and_unmelted_wire_still_s
     r = s.x[:, :2].norm(dim=1)
     T_L = cfg["thermal"]["liquidus_K"]
     zb = float(s.x[wire, 2].min())
-    collar = wire & (r > 0.3e-3) & (s.x[:, 2] < zb + 3.75e-4)  # the two bottom layers' outer ring
+    collar = wire & (r > 0.3e-3) & (s.x[:, 2] < zb + 1.25e-4)  # the bottom layer's outer ring
     s.T_peak = torch.where(collar, torch.full_like(s.T_peak, T_L + 100.0), s.T_peak)
     m0, n0, ids = float(s.m.sum()), s.n, s.id[collar].clone()
     assert ids.numel() >= 8
@@ -141,7 +185,7 @@ def test_refrozen_wire_material_welds_to_the_substrate_and_unmelted_wire_still_s
     assert torch.allclose(s.v[welded], torch.tensor([0.015, 0.0, 0.0], dtype=s.dtype))
     assert float(s.m[s.id < n0].sum()) == pytest.approx(m0, rel=1e-12)  # ids 0..n0-1 at the start
     assert s.id.unique().numel() == s.n
-    assert float(s.x[welded, 2].max()) < -0.5 * 2.5e-4  # welded once they reached into the substrate
+    assert float(s.x[welded, 2].max()) < 0.5 * 2.5e-4  # welded once they reached the substrate's top
 
 
 def test_sources_are_aimed_at_the_tip_in_the_declared_layout():

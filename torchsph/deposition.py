@@ -44,7 +44,7 @@ class WireFeeder:
 
     def __init__(self, layer_xy: torch.Tensor, z0: float, n_layers: int, dx: float, speed: float,
                  mass: float, rho0: float, T0: float, next_id: int, start: float = 0.0,
-                 contact: str = "stop", T_melt: float | None = None):
+                 contact: str = "stop", T_melt: float | None = None, stall: bool = False):
         self.layer_xy = layer_xy
         self.z0, self.K, self.dx, self.speed = z0, n_layers, dx, speed
         self.start = start  # the feed starts at this time (the sources may preheat first)
@@ -53,7 +53,11 @@ class WireFeeder:
         self.next_id = next_id
         self.n_fed = 0  # layers added so far
         self.contact, self.T_melt = contact, T_melt  # see check_contact
+        self.stall = stall  # unmelted wire on solid substrate waits instead of stopping the run
         self.welded_kg, self.n_welded = 0.0, 0  # refrozen wire material welded to the substrate
+        self.fed = 0.0  # length of wire fed so far (the distance the solid wire has moved)
+        self.stalled = False  # the wire rests on solid substrate; its feed waits
+        self.stall_s, self.n_stalls = 0.0, 0  # time spent stalled, stalls begun
 
     @property
     def area(self) -> float:
@@ -63,52 +67,65 @@ class WireFeeder:
     def layers(self, js: torch.Tensor, t: float) -> ParticleState:
         xy = self.layer_xy
         n = xy.shape[0]
-        z = self.z0 + (js.to(xy.dtype) + 0.5) * self.dx - self.fed_length(t)
+        z = self.z0 + (js.to(xy.dtype) + 0.5) * self.dx - self.fed
         x = torch.cat([xy.repeat(js.numel(), 1), z.repeat_interleave(n).unsqueeze(1)], 1)
         v = torch.zeros_like(x)
-        v[:, 2] = -self.speed if self.started else 0.0
+        v[:, 2] = -self.speed if self.started and not self.stalled else 0.0
         ids = torch.arange(self.next_id, self.next_id + x.shape[0], device=x.device)
         self.next_id += x.shape[0]
         return ParticleState.create(x, v, self.rho0, self.mass, Phase.SOLID, T=self.T0, id=ids,
                                     body=WIRE, dtype=xy.dtype, device=xy.device)
 
-    def fed_length(self, t: float) -> float:
-        return self.speed * max(0.0, t - self.start)
+    def _set_wire_velocity(self, sim, speed: float):
+        vw = torch.zeros(sim.state.dim, dtype=sim.state.dtype, device=sim.state.device)
+        vw[2] = -speed
+        sim.set_body_velocity(WIRE, vw)
 
     def new_particles(self, sim, t: float) -> ParticleState | None:
-        self.check_contact(sim)
+        """Called after the positions of the step from sim.t to t were updated: count the
+        distance the wire moved in it, handle contact, add the layers now due."""
+        if self.started and not self.stalled:
+            self.fed += self.speed * (t - sim.t)
+        elif self.stalled:
+            self.stall_s += t - sim.t
+        blocked = self.check_contact(sim)
+        if self.stall and blocked != self.stalled:  # stall on contact, go on once it has melted
+            self.stalled = blocked
+            self.n_stalls += int(blocked)
+            if self.started:
+                self._set_wire_velocity(sim, 0.0 if blocked else self.speed)
         if not self.started and t >= self.start:  # the wire moves from the next step on
             self.started = True
-            vw = torch.zeros(sim.state.dim, dtype=sim.state.dtype, device=sim.state.device)
-            vw[2] = -self.speed
-            sim.set_body_velocity(WIRE, vw)
-        due = int(math.floor(self.fed_length(t) / self.dx + 1e-9)) - self.n_fed
+            self._set_wire_velocity(sim, 0.0 if self.stalled else self.speed)
+        due = int(math.floor(self.fed / self.dx + 1e-9)) - self.n_fed
         if due <= 0:
             return None
         js = torch.arange(self.K + self.n_fed, self.K + self.n_fed + due, device=self.layer_xy.device)
         self.n_fed += due
         return self.layers(js, t)
 
-    def check_contact(self, sim):
-        """The wire is rigid until it melts. Solid wire below the substrate's original top
-        face (by more than half a spacing) may dip into the melt pool; where it runs into
-        solid substrate (:meth:`touches_solid_substrate`) it is handled by ``contact``:
+    def check_contact(self, sim) -> bool:
+        """The wire is rigid until it melts. Solid wire may dip into the melt pool below the
+        substrate's top face; where it runs into
+        solid substrate (:meth:`touches_solid_substrate`) it is handled by ``contact`` and
+        ``stall``:
 
-        - wire that has never melted (peak temperature <= liquidus) means the sources do not
-          melt the feed before it arrives: the run stops with a diagnosis rather than let two
-          rigid bodies overlap;
+        - wire that has never melted (peak temperature <= liquidus): with ``stall`` the feed
+          waits (returns True: the wire rests on the substrate while the sources melt its tip,
+          and goes on once the touching particles have melted: the feed is limited by the
+          melting rate, and ``stall_s`` says for how long); without it the run stops with a
+          diagnosis rather than let two rigid bodies overlap;
         - with ``contact = "weld"``, wire-body material that has melted and frozen back onto
           the wire (a collar of melt that ran up the wire's unlit side) joins the substrate
           where it touches it and moves with it from then on (its mass is counted in
-          ``welded_kg``); with ``"stop"`` it stops the run like unmelted wire."""
+          ``welded_kg``); with ``"stop"`` it stops the run like unmelted wire.
+
+        Returns whether unmelted wire rests on solid substrate (the same on every process)."""
         s = sim.state
-        low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < -0.5 * self.dx)
-        if not bool(low.any()):  # one sync per step; the rest only on contact
-            return
-        low = self.touches_solid_substrate(s, low)
-        if not bool(low.any()):  # solid wire dipping into the melt pool: it melts there
-            return
-        if self.contact == "weld" and self.T_melt is not None:
+        low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < 0.5 * self.dx)
+        if bool(low.any()):  # one sync per step; the rest only on contact
+            low = self.touches_solid_substrate(s, low)
+        if bool(low.any()) and self.contact == "weld" and self.T_melt is not None:
             weld = low & (s.T_peak > self.T_melt)
             if bool(weld.any()):
                 s.body = torch.where(weld, torch.full_like(s.body, SUBSTRATE), s.body)
@@ -119,8 +136,12 @@ class WireFeeder:
                 self.welded_kg += float(s.m[mine].sum())
                 self.n_welded += int(mine.sum())
                 low = low & ~weld
-                if not bool(low.any()):
-                    return
+        unmelted = low & (s.T_peak <= (self.T_melt or math.inf))
+        if self.stall:
+            blocked = sim.comm.any(bool(unmelted.any()))
+            low = low & ~unmelted
+        if not bool(low.any()):
+            return self.stall and blocked
         z = torch.where(low, s.x[:, 2], torch.full_like(s.x[:, 2], math.inf))
         k = int(torch.argmin(z))
         from .simulation import SimulationError
@@ -130,46 +151,55 @@ class WireFeeder:
         if float(s.T_peak[k]) <= (self.T_melt or math.inf):
             raise SimulationError(where.format("solid wire reached into the substrate") + (
                 f": the sources do not melt the feed ({self.speed:g} m/s) before it arrives; raise the source "
-                "power, aim the sources lower (source_aim_height_m), start the wire higher (wire_gap_m) or "
-                "feed slower"))
+                "power, aim the sources lower (source_aim_height_m), start the wire higher (wire_gap_m), "
+                "feed slower, or let the feed wait for the tip to melt (scene.wire_stall = true)"))
         raise SimulationError(where.format("wire material that melted and froze back onto the wire reached "
                                            "into the substrate") + ": scene.wire_contact = \"weld\" lets it join "
                                            "the substrate")
 
     def touches_solid_substrate(self, s, low: torch.Tensor | None = None) -> torch.Tensor:
-        """Mask of the solid wire particles below the substrate's top that run into rigid
-        (solid) substrate material: one lies within one spacing below them (in the way of
-        the feed) or within half a spacing anywhere (overlap); rigid solid beside the wire,
+        """Mask of the solid wire particles at the substrate's top or below (centre less than
+        half a spacing above the original top face) that run into rigid (solid) substrate
+        material in their way: less than 0.72 spacing aside, from the layer below them (up to
+        1.25 spacings lower) up to their own height (an overlap). A wire resting on the top
+        face is therefore blocked; rigid solid beside the wire (0.75 spacing or more aside),
         e.g. the wall of the pool it is fed into, does not count. Wire below the top but
         surrounded by melt is fed into the pool, as in the real process, and melts there.
         Only the few low particles are compared, against the substrate particles in their
-        bounding box grown by one spacing. ``low``: the mask of solid wire below the top,
-        if the caller has it."""
+        bounding box grown by 1.5 spacings. ``low``: the mask of solid wire at the top or
+        below, if the caller has it."""
         if low is None:
-            low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < -0.5 * self.dx)
+            low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < 0.5 * self.dx)
         idx = low.nonzero().squeeze(1)
         out = torch.zeros_like(low)
         if idx.numel() == 0:
             return out
         xl = s.x[idx]
-        lo, hi = xl.min(0).values - self.dx, xl.max(0).values + self.dx
+        lo, hi = xl.min(0).values - 1.5 * self.dx, xl.max(0).values + 1.5 * self.dx
         sub = ((s.body == SUBSTRATE) & (s.phase != Phase.FLUID) & (s.x >= lo).all(1) & (s.x <= hi).all(1))
         xs = s.x[sub]
         if xs.shape[0]:
-            r = torch.cdist(xl, xs)
-            below = (xl[:, 2:3] - xs[:, 2].unsqueeze(0)) > 0.5 * self.dx  # in the wire's way
-            near = ((r < 0.5 * self.dx) | ((r < self.dx) & below)).any(1)
-            out[idx[near]] = True
+            dz = xl[:, 2:3] - xs[:, 2].unsqueeze(0)
+            # in the wire's way: substrate in its column (less than 0.72 spacing aside: on a
+            # lattice some column is always within dx / sqrt(2), so a wire resting on a moving
+            # substrate stays blocked whatever the two lattices' alignment), from the layer
+            # below (dz ~ dx) up to its own height (an overlap)
+            way = (dz > -0.5 * self.dx) & (dz < 1.25 * self.dx) & (torch.cdist(xl[:, :2], xs[:, :2]) < 0.72 * self.dx)
+            out[idx[way.any(1)]] = True
         return out
 
     def state_dict(self) -> dict:
         return {"n_fed": self.n_fed, "next_id": self.next_id, "started": self.started,
-                "welded_kg": self.welded_kg, "n_welded": self.n_welded}
+                "welded_kg": self.welded_kg, "n_welded": self.n_welded, "fed": self.fed,
+                "stalled": self.stalled, "stall_s": self.stall_s, "n_stalls": self.n_stalls}
 
     def load_state_dict(self, d: dict):
         self.n_fed, self.next_id = d["n_fed"], d["next_id"]
         self.started = d.get("started", self.start <= 0.0)
         self.welded_kg, self.n_welded = d.get("welded_kg", 0.0), d.get("n_welded", 0)
+        # older checkpoints: no stall, so the fed length followed the feed clock
+        self.fed = d.get("fed", self.n_fed * self.dx)
+        self.stalled, self.stall_s, self.n_stalls = d.get("stalled", False), d.get("stall_s", 0.0), d.get("n_stalls", 0)
 
 
 def source_beams(sc: dict) -> list[dict]:
@@ -215,7 +245,8 @@ def build(cfg, dtype, device):
     K = max(round(sc["wire_length_m"] / dx), 1)
     feeder = WireFeeder(xy, sc["wire_gap_m"], K, dx, sc["wire_feed_m_s"], rho0 * area * dx / xy.shape[0],
                         rho0, T0, next_id=xs.shape[0], start=sc["wire_feed_start_s"],
-                        contact=sc["wire_contact"], T_melt=cfg["thermal"]["liquidus_K"] if "thermal" in cfg else None)
+                        contact=sc["wire_contact"], T_melt=cfg["thermal"]["liquidus_K"] if "thermal" in cfg else None,
+                        stall=sc["wire_stall"])
     wire = feeder.layers(torch.arange(K, device=device), 0.0)
     st = ParticleState.cat([sub, wire])
     hi_z = sc["wire_gap_m"] + K * dx
@@ -259,7 +290,7 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
     - ``added_area_m2``: the bead's added cross-section per substrate-frame x bin, from mass:
       (mass now in the bin, the solid wire excluded, minus the substrate's own mass there)
       / (rho0 bin length); the steady value is (pi d^2 / 4) V_wire / V_sub by mass conservation;
-    - ``wire_fed_kg`` = rho0 A V_wire t against ``wire_inserted_kg``, the mass of the layers
+    - ``wire_fed_kg`` = rho0 A (length fed: V_wire t less the time stalled) against ``wire_inserted_kg``, the mass of the layers
       the feeder added (equal to within one layer); ``wire_melted_kg``, the wire-origin mass
       no longer in the solid wire, against ``deposit_kg``, the mass over the substrate's
       own in all bins (the difference is material that left the substrate's x range);
@@ -291,7 +322,7 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
         pool |= {"length_m": ext[0], "width_m": ext[1], "depth_below_top_m": max(0.0, -float(xp[:, 2].min())),
                 "volume_m3": float((m[hot] / state.rho[hot]).sum())}
     feeder = info["feeder"]
-    fed = rho0 * feeder.area * feeder.fed_length(t)
+    fed = rho0 * feeder.area * feeder.fed
     inserted = float(m[wire_origin].sum()) - info["wire_mass0"]
     melted = float(m[wire_origin & ~solid_wire].sum())
     return {"t_s": t, "bin_centres_m": centres.tolist(), "added_area_m2": added.tolist(),
@@ -299,5 +330,6 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
             "wire_fed_kg": fed, "wire_inserted_kg": inserted, "wire_melted_kg": melted,
             "deposit_kg": float((mass_bin - sub_bin).sum()),
             "welded_kg": feeder.welded_kg if welded_kg is None else welded_kg,
+            "wire_stalled_s": feeder.stall_s, "wire_stalls": feeder.n_stalls,
             "peak_temperature_K": float(state.T.max()), "melt_pool": pool,
             "n_liquid": int(hot.sum()), "n_particles": state.n}

@@ -407,7 +407,10 @@ SCENES: dict[str, SceneSpec] = {
                                   doc="the feed starts at this time (the sources preheat the tip first)"),
          "wire_contact": Key("str", default="weld", choices=("stop", "weld"),
                              doc="wire material that melted and froze back onto the wire, reaching the "
-                                 "substrate: stops the run, or joins the substrate (unmelted wire always stops)"),
+                                 "substrate: stops the run, or joins the substrate"),
+         "wire_stall": Key("bool", default=False,
+                           doc="unmelted wire that reaches solid substrate waits there (the feed pauses) "
+                               "until its tip melts; false: the run stops with a diagnosis"),
          "source_layout": Key("str", choices=("along", "perpendicular", "none"),
                               doc="sources in the plane of travel (ahead/behind) or across it"),
          "source_count": Key("int", default=2, ge=1, doc="number of sources, evenly spaced in azimuth"),
