@@ -33,6 +33,12 @@ DEPOSITION = (ROOT / "cases" / "perpendicular_350W",
               ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[3.0e-3, 3.0e-3, 1.0e-3]", "scene.wire_offset_m=1.5e-3",
                "scene.wire_length_m=1.0e-3", "scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1"], 300)
 
+# the wire stalls on the substrate (no sources: it arrives unmelted and rests there); the
+# stall is decided on every rank together
+STALL = (ROOT / "cases" / "perpendicular_350W",
+         DEPOSITION[1][:4] + ["scene.wire_gap_m=0.1e-3", "scene.wire_feed_m_s=0.03", "scene.source_layout=\"none\"",
+                              "scene.wire_stall=true"], 20)
+
 
 def mpirun(n, args, env=ENV, timeout=600):
     return subprocess.run([MPIEXEC, "-n", str(n), sys.executable] + args, cwd=ROOT, env=env,
@@ -53,12 +59,15 @@ def rel(a, b):
     return float(np.abs(a - b).max()) / scale
 
 
-@pytest.mark.parametrize("which", ["fluid", "thermal", "surface", "deposition"])
+@pytest.mark.parametrize("which", ["fluid", "thermal", "surface", "deposition", "stall"])
 def test_decomposed_run_equals_single_process(tmp_path, which):
     """After K steps on 2 and 3 ranks the state gathered by id equals the single-process run to
     1e-10 relative (float64); particle count and total mass are exactly conserved."""
-    case, ov, K = {"fluid": FLUID, "thermal": THERMAL, "surface": SURFACE, "deposition": DEPOSITION}[which]
+    case, ov, K = {"fluid": FLUID, "thermal": THERMAL, "surface": SURFACE, "deposition": DEPOSITION,
+                   "stall": STALL}[which]
     ref, sim = serial(case, ov, K)
+    if which == "stall":
+        assert sim.feeder.stalled and sim.feeder.stall_s > 0
     if which == "deposition":  # what the case must exercise
         assert sim.feeder.n_fed >= 2 and (ref["phase"] == 0).sum() > 0 and sim.active_set is not None
         assert 0 < float(sim.thermal.lit.sum())
@@ -70,7 +79,7 @@ def test_decomposed_run_equals_single_process(tmp_path, which):
         assert int(g["step"]) == K and float(g["t"]) == pytest.approx(sim.t, rel=1e-12)
         assert np.array_equal(g["state_id"], ref["id"])  # every particle once: none lost or doubled
         assert g["state_m"].sum() == ref["m"].sum()
-        if which != "thermal":
+        if which not in ("thermal", "stall"):
             assert int(g["migrations"]) >= 2  # particles did cross the slab boundaries
         for k in ("x", "v", "rho", "T"):
             if np.abs(ref[k]).max() > 0:
