@@ -35,6 +35,8 @@ def analyse(out: Path, start_skip_m: float = 2.0e-3, pool_margin_m: float = 2.5e
             "error": mean / d["expected_area_m2"] - 1 if rows else float("nan"),
             "wire_fed_kg": d["wire_fed_kg"], "wire_inserted_kg": d["wire_inserted_kg"],
             "wire_melted_kg": d["wire_melted_kg"], "deposit_kg": d["deposit_kg"],
+            "welded_kg": d.get("welded_kg"), "off_substrate_kg": d.get("off_substrate_kg"),
+            "wire_stalled_s": d.get("wire_stalled_s"),
             "profile_mm2": [(round(x * 1e3, 3), round(a * 1e6, 3)) for x, a in
                             zip(d["bin_centres_m"], d["added_area_m2"])],
             "peak_temperature_K": d["peak_temperature_K"], "melt_pool": d["melt_pool"]}

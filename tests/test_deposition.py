@@ -49,6 +49,30 @@ def test_wire_feed_is_a_continuous_lattice_with_the_exact_mass_flux():
     assert abs(info["wire_inserted_kg"] / layer_mass - 25) < 1e-9
 
 
+def test_deposit_counts_material_on_the_substrate_and_spatter_apart():
+    """measure(): wire material that has left the wire counts in the deposit where it lies over
+    the substrate, and as off_substrate_kg (not deposit) where it was flung beside it."""
+    from torchsph.state import Phase
+
+    cfg = small("scene.source_layout=\"none\"")
+    scene, sim = make_simulation(cfg)
+    s, dx = sim.state, cfg["scene"]["dx_m"]
+    args = (0.015, 0.03, cfg["fluid"]["rho0_kg_m3"], 1753.15, dx)
+    base = measure(s, scene.info, 0.0, *args)
+    drop = torch.nonzero(s.body == WIRE).squeeze(1)[:5]
+    s.phase[drop] = int(Phase.FLUID)
+    s.body[drop] = 0
+    m_drop = float(s.m[drop].sum())
+    s.x[drop] = torch.tensor([-0.5e-3, 0.0, 0.2e-3], dtype=s.dtype)  # a drop on the bead
+    on = measure(s, scene.info, 0.0, *args)
+    assert on["deposit_kg"] - base["deposit_kg"] == pytest.approx(m_drop, rel=1e-9)
+    assert on["off_substrate_kg"] == 0.0
+    s.x[drop, 1] = 20e-3  # flung 20 mm aside
+    off = measure(s, scene.info, 0.0, *args)
+    assert off["deposit_kg"] == pytest.approx(base["deposit_kg"], abs=1e-12 * m_drop)
+    assert off["off_substrate_kg"] == pytest.approx(m_drop, rel=1e-12)
+
+
 def test_feed_can_start_late():
     """wire_feed_start_s: the wire rests until then (the sources preheat its tip), then moves
     at the feed speed; fed mass counts from the start."""

@@ -33,7 +33,7 @@ def test_half_cylinder_bead_on_a_block():
     """A block 4 x 3 x 1 mm (top z = 0) with a half-cylinder bead of radius 0.6 mm along x on
     top, and a fusion zone (peak T > T_L) of half-width 0.8 mm and depth 0.35 mm (half
     ellipse) under it: width, height and penetration within one particle spacing, the added
-    cross-section within 5 % of pi R^2 / 2."""
+    cross-section within 5 % of pi R^2 / 2; a detached drop over the bead does not count."""
     R, P, Wf = 0.6e-3, 0.35e-3, 0.8e-3
     block = lattice((0, -1.5e-3, -1e-3), (4e-3, 1.5e-3, 0))
     cand = lattice((0, -R, 0), (4e-3, R, R))
@@ -42,7 +42,13 @@ def test_half_cylinder_bead_on_a_block():
     Tp = np.full(x.shape[0], 600.0)
     fz = (x[:, 1] / Wf) ** 2 + (x[:, 2] / P) ** 2 < 1.0
     Tp[fz] = 2000.0
+    # spatter: a drop of 8 particles flung 20 mm aside and 5 mm up over the same columns is
+    # not part of the bead (not attached to the substrate)
+    drop = lattice((2e-3, 20e-3, 5e-3), (2.2e-3, 20.2e-3, 5.2e-3))
+    x = np.concatenate([x, drop])
+    Tp = np.concatenate([Tp, np.full(drop.shape[0], 2100.0)])
     s = snap_of(x, Tp=Tp)
+    assert post.detached(s, DX).sum() == drop.shape[0] == 8
     prof = post.bead_profile(s, cfg_of([4e-3, 3e-3, 1e-3]))
     b = post.steady_average(prof, 0.5e-3, 3.5e-3)
     assert b["columns"] >= 29

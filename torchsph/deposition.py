@@ -293,7 +293,8 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
     - ``wire_fed_kg`` = rho0 A (length fed: V_wire t less the time stalled) against ``wire_inserted_kg``, the mass of the layers
       the feeder added (equal to within one layer); ``wire_melted_kg``, the wire-origin mass
       no longer in the solid wire, against ``deposit_kg``, the mass over the substrate's
-      own in all bins (the difference is material that left the substrate's x range);
+      own in all bins (the difference is material that left the substrate's x range, or
+      ``off_substrate_kg``: flung more than a spacing beside the substrate, spatter);
       ``welded_kg``: refrozen wire material that joined the substrate by contact
       (:meth:`WireFeeder.check_contact`; ``welded_kg`` overrides the feeder's count);
     - the melt pool: particles above the liquidus, their volume and extents, peak temperature.
@@ -307,7 +308,9 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
     nb = max(int(counts[0] * dx // bin_m), 1)
     lo = origin[0]
     k = torch.floor((x0 - lo) / bin_m).long()
-    keep = (~solid_wire) & (k >= 0) & (k < nb)
+    # material flung beside the substrate (spatter) is not on the bead: counted apart
+    off = (~solid_wire) & (x[:, 1].abs() > 0.5 * counts[1] * dx + dx)
+    keep = (~solid_wire) & ~off & (k >= 0) & (k < nb)
     mass_bin = torch.zeros(nb, dtype=m.dtype, device=m.device).index_add_(0, k[keep], m[keep])
     m_sub = float(m[0])  # substrate particles all have one mass
     sub_bin = m_sub * counts[1] * counts[2] * (bin_m / dx)
@@ -329,6 +332,7 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
             "expected_area_m2": info["wire_area"] * V_wire / V_sub if V_sub > 0 else math.inf,
             "wire_fed_kg": fed, "wire_inserted_kg": inserted, "wire_melted_kg": melted,
             "deposit_kg": float((mass_bin - sub_bin).sum()),
+            "off_substrate_kg": float(m[off].sum()),
             "welded_kg": feeder.welded_kg if welded_kg is None else welded_kg,
             "wire_stalled_s": feeder.stall_s, "wire_stalls": feeder.n_stalls,
             "peak_temperature_K": float(state.T.max()), "melt_pool": pool,

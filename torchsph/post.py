@@ -108,12 +108,30 @@ def melt_pool_history(run_dir: str | Path) -> list[dict]:
 
 
 # --- bead geometry --------------------------------------------------------------------
+def detached(snap: dict, dx: float, among: np.ndarray | None = None) -> np.ndarray:
+    """Mask of the material above the original top (z > 0) that is not attached to the
+    substrate: its connected component (links of 1.5 dx) among ``among`` particles at
+    z > -dx holds no particle at or below the top: spatter and drops in flight."""
+    pos = snap["position"]
+    among = np.ones(pos.shape[0], bool) if among is None else among
+    idx = np.nonzero(among & (pos[:, 2] > -dx))[0]
+    out = np.zeros(pos.shape[0], bool)
+    if idx.size == 0:
+        return out
+    lab = components(pos[idx], 1.5 * dx)
+    grounded = np.zeros(idx.size, bool)
+    grounded[np.isin(lab, lab[pos[idx, 2] <= 0.0])] = True
+    out[idx[~grounded]] = True
+    return out
+
+
 def bead_profile(snap: dict, cfg: dict, T_liquidus: float | None = None, x0=None, vol=None) -> dict:
     """Bead geometry per substrate-frame column of width dx: width (y extent of the material
     above the original top z = 0), height (top of that material), penetration (depth below
     z = 0 of the fusion line: the deepest particle whose peak temperature passed T_L), and
     the added cross-section (volume above the top minus the substrate volume missing below
-    it, per unit length). The solid wire is not part of the deposit."""
+    it, per unit length). The solid wire is not part of the deposit, nor is material above
+    the top that is not attached to the substrate (:func:`detached`: spatter, drops in flight)."""
     sc = cfg["scene"]
     dx = sc["dx_m"]
     TL = cfg["thermal"]["liquidus_K"] if T_liquidus is None else T_liquidus
@@ -121,6 +139,7 @@ def bead_profile(snap: dict, cfg: dict, T_liquidus: float | None = None, x0=None
     pos = snap["position"]
     vol = volumes(snap, cfg) if vol is None else vol
     deposit = ~((snap["body"] == WIRE) & (snap["phase"] == SOLID))
+    deposit &= ~detached(snap, dx, deposit)
     lo = x0[deposit].min()
     k = np.floor((x0 - lo) / dx + 0.5).astype(np.int64)  # columns centred on the lattice
     nb = int(k[deposit].max()) + 1
