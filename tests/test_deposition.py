@@ -97,7 +97,8 @@ def test_feed_can_start_late():
 def test_unmelted_wire_reaching_the_substrate_stops_with_a_diagnosis():
     from torchsph.simulation import SimulationError
 
-    cfg = small("scene.source_layout=\"none\"", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=0.5e-3")
+    cfg = small("scene.source_layout=\"none\"", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=0.5e-3",
+                "scene.wire_stall=false")
     _, sim = make_simulation(cfg)
     with pytest.raises(SimulationError, match="solid wire reached into the substrate .* the sources do not melt"):
         run_steps(sim, t_end=0.01)
@@ -150,7 +151,7 @@ def test_solid_wire_may_dip_into_the_melt_pool_but_not_into_solid_substrate():
     from torchsph.simulation import SimulationError
     from torchsph.state import Phase
 
-    cfg = small("scene.source_layout=\"none\"", "scene.wire_gap_m=0.0")
+    cfg = small("scene.source_layout=\"none\"", "scene.wire_gap_m=0.0", "scene.wire_stall=false")
     scene, sim = make_simulation(cfg)
     s, dx = sim.state, cfg["scene"]["dx_m"]
     feeder = scene.info["feeder"]
@@ -187,7 +188,7 @@ def test_refrozen_wire_material_welds_to_the_substrate_and_unmelted_wire_still_s
     from torchsph.simulation import SimulationError
 
     cfg = small("scene.source_layout=\"none\"", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=0.25e-3",
-                "scene.substrate_velocity_m_s=[0.015, 0.0, 0.0]")
+                "scene.substrate_velocity_m_s=[0.015, 0.0, 0.0]", "scene.wire_stall=false")
     scene, sim = make_simulation(cfg)
     s = sim.state
     wire = s.body == WIRE
