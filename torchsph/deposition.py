@@ -86,7 +86,7 @@ class WireFeeder:
         distance the wire moved in it, handle contact, add the layers now due."""
         if self.started and not self.stalled:
             self.fed += self.speed * (t - sim.t)
-        elif self.stalled:
+        elif self.started:  # stalled (before the feed starts the wire waits anyway)
             self.stall_s += t - sim.t
         blocked = self.check_contact(sim)
         if self.stall and blocked != self.stalled:  # stall on contact, go on once it has melted
@@ -123,9 +123,11 @@ class WireFeeder:
         Returns whether unmelted wire rests on solid substrate (the same on every process)."""
         s = sim.state
         low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < 0.5 * self.dx)
-        if bool(low.any()):  # one sync per step; the rest only on contact
+        hit = bool(low.any())  # one sync per step; the rest only on contact
+        if hit:
             low = self.touches_solid_substrate(s, low)
-        if bool(low.any()) and self.contact == "weld" and self.T_melt is not None:
+            hit = bool(low.any())
+        if hit and self.contact == "weld" and self.T_melt is not None:
             weld = low & (s.T_peak > self.T_melt)
             if bool(weld.any()):
                 s.body = torch.where(weld, torch.full_like(s.body, SUBSTRATE), s.body)
@@ -136,12 +138,16 @@ class WireFeeder:
                 self.welded_kg += float(s.m[mine].sum())
                 self.n_welded += int(mine.sum())
                 low = low & ~weld
-        unmelted = low & (s.T_peak <= (self.T_melt or math.inf))
-        if self.stall:
-            blocked = sim.comm.any(bool(unmelted.any()))
-            low = low & ~unmelted
-        if not bool(low.any()):
-            return self.stall and blocked
+                hit = bool(low.any())
+        blocked = False
+        if self.stall:  # every process takes part, touching or not
+            unmelted = low & (s.T_peak <= (self.T_melt or math.inf)) if hit else None
+            blocked = sim.comm.any(hit and bool(unmelted.any()))
+            if hit:
+                low = low & ~unmelted
+                hit = bool(low.any())
+        if not hit:
+            return blocked
         z = torch.where(low, s.x[:, 2], torch.full_like(s.x[:, 2], math.inf))
         k = int(torch.argmin(z))
         from .simulation import SimulationError
