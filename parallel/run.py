@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -64,7 +65,7 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | Non
 def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | None = None):
     if d.get("format") != FORMAT:
         raise CheckpointError(f"--restart {path}: not a global (MPI) checkpoint; restart it without mpirun")
-    check_case(d, cfg, path, recorded)
+    changes = check_case(d, cfg, path, recorded)
     dev, dt = sim.state.device, sim.state.dtype
     comm.bounds = None  # equal shares of the checkpoint's particles on this run's ranks
     local = comm.distribute({k: v for k, v in d["arrays"].items()}, first=True)
@@ -96,7 +97,7 @@ def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | No
         sim.dvdt = saved
     torch.set_rng_state(d["rng"])
     sim.info = sim._measure()
-    return d.get("extra", {})
+    return {**d.get("extra", {}), "step_control_changes": changes}
 
 
 def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, device=None,
@@ -145,6 +146,8 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
         extra = restore_global(sim, comm, d, cfg, str(restart), recorded)
         if root:
             sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
+            for c in extra["step_control_changes"]:
+                print(f"torchsph: restart from {restart}: {c}", file=sys.stderr, flush=True)
         snaps = [tuple(s) for s in extra.get("snaps", [])]
         next_out = [extra.get("next_out", interval)]
         deposit[:] = extra.get("deposit", [])
@@ -231,5 +234,7 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
                            "rebalance_every": comm.rebalance_every, "history": [float(v) for v in imb]},
         "energy": energy, "physics_plan": physics_plan(sim), "snapshots": len(snaps), "torch": torch.__version__,
     }
+    if restart is not None:
+        summary["restart_step_control_changes"] = extra["step_control_changes"]
     sio.write_json(out_dir / "summary.json", summary)
     return summary

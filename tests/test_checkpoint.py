@@ -51,6 +51,33 @@ def test_restart_refuses_a_different_case(tmp_path):
                  restart=tmp_path / "checkpoint.pt")
 
 
+def test_restart_may_change_the_step_control_and_says_so(tmp_path):
+    """A run stopped by a blow-up goes on from its last checkpoint with a smaller CFL number:
+    the restart is accepted, takes steps of the new size (the acoustic limit binds: dt scales
+    with the CFL number) and records the change; a physics change next to it is still
+    refused, by name."""
+    _, cfg = load_case(CASES / "taylor_green_2d", ["numerics.cfl=0.25"])
+    s1 = run_case(cfg, CASES / "taylor_green_2d", tmp_path, steps=3, progress=False)
+    assert s1["dt_binding_limit"] == "acoustic"
+    _, cfg = load_case(CASES / "taylor_green_2d", ["numerics.cfl=0.05",
+                                                 "fluid.viscosity_Pa_s=0.5"])
+    with pytest.raises(ckpt.CheckpointError, match=r"different case: fluid.viscosity_Pa_s = 0.01 in the "
+                                                   r"checkpoint, 0.5 now; only \[run\] and numerics.cfl"):
+        run_case(cfg, CASES / "taylor_green_2d", tmp_path / "b", steps=3, progress=False,
+                 restart=tmp_path / "checkpoint.pt")
+    _, cfg = load_case(CASES / "taylor_green_2d", ["numerics.cfl=0.05"])
+    s2 = run_case(cfg, CASES / "taylor_green_2d", tmp_path / "c", steps=2, progress=False,
+                  restart=tmp_path / "checkpoint.pt")
+    assert s2["steps"] == 5
+    assert s2["restart_step_control_changes"] == ["numerics.cfl = 0.25 in the checkpoint, 0.05 now"]
+    # cfl h / (c0 + |u|max): |u|max is ~1 % of c0 and decays by ~1e-4 over these steps
+    assert s2["dt_max_s"] == pytest.approx(s1["dt_min_s"] * 0.2, rel=1e-3)
+    # and the new checkpoint carries the new value: restarting it with 0.05 changes nothing
+    s3 = run_case(cfg, CASES / "taylor_green_2d", tmp_path / "c", steps=1, progress=False,
+                  restart=tmp_path / "c" / "checkpoint.pt")
+    assert s3["restart_step_control_changes"] == []
+
+
 @pytest.mark.parametrize("carried", [True, False])
 def test_restart_accepts_a_checkpoint_from_before_a_key_was_added_at_its_default(tmp_path, carried):
     """A newer version adds a physics key whose default keeps the old behaviour: a checkpoint

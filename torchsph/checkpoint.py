@@ -55,10 +55,16 @@ def _defaults(section: str, cfg: dict) -> dict:
                                   if key.default is not C._REQUIRED}, default=str))
 
 
-def differences(old: dict, cfg: dict) -> list[str]:
-    """What differs between a checkpoint's recorded physics and a case, key by key. A key the
-    checkpoint lacks is not a difference when the case has it at its default (a key added by
-    a newer version of the code that keeps the old behaviour by default)."""
+# Keys that say how the steps are taken, not what is simulated: a restart may change them
+# (a run stopped by a blow-up goes on from its last checkpoint with a smaller CFL number).
+STEP_CONTROL = ("numerics.cfl", "numerics.dt_s", "numerics.allow_unstable_dt", "numerics.compile",
+                "numerics.rebalance_every")
+
+
+def _changed(old: dict, cfg: dict) -> list[tuple[str, object, object]]:
+    """(section.key, checkpoint's value, case's value) for each physics key that differs. A
+    key the checkpoint lacks is not a difference when the case has it at its default (a key
+    added by a newer version of the code that keeps the old behaviour by default)."""
     new, out = physics(cfg), []
     for sec in PHYSICS_SECTIONS:
         a, b = old.get(sec), new.get(sec)
@@ -68,27 +74,40 @@ def differences(old: dict, cfg: dict) -> list[str]:
                 if k not in a and k in dflt and dflt[k] == b[k]:
                     continue
                 if a.get(k, "(absent)") != b.get(k, "(absent)"):
-                    out.append(f"{sec}.{k} = {a.get(k, '(absent)')} in the checkpoint, {b.get(k, '(absent)')} now")
+                    out.append((f"{sec}.{k}", a.get(k, "(absent)"), b.get(k, "(absent)")))
         elif a != b:
-            out.append(f"[{sec}] differs")
+            out.append((f"[{sec}]", None, None))
     return out
 
 
-def check_case(d: dict, cfg: dict, path: str, recorded: dict | None = None):
+def _say(key, a, b) -> str:
+    return f"{key} differs" if a is None and b is None and key.startswith("[") else \
+        f"{key} = {a} in the checkpoint, {b} now"
+
+
+def differences(old: dict, cfg: dict) -> list[str]:
+    """What differs between a checkpoint's recorded physics and a case, key by key."""
+    return [_say(*c) for c in _changed(old, cfg)]
+
+
+def check_case(d: dict, cfg: dict, path: str, recorded: dict | None = None) -> list[str]:
     """Refuse a checkpoint written for other physics, naming what differs. ``recorded``: the
     physics of the run that wrote it, for checkpoints that do not carry their own (its
-    ``config.json``); it is trusted only if it hashes to the checkpoint's hash."""
+    ``config.json``); it is trusted only if it hashes to the checkpoint's hash. Changes of
+    the :data:`STEP_CONTROL` keys are accepted; returns them (one line each)."""
+    allowed = "only [run] and " + ", ".join(STEP_CONTROL) + " may change on a restart"
     if d.get("config_hash") == config_hash(cfg):
-        return
+        return []
     old = d.get("physics") or recorded
     if old is not None and config_hash(old) == d.get("config_hash"):
-        diff = differences(old, cfg)
-        if not diff:
-            return
-        raise CheckpointError(f"--restart {path}: written for a different case: " + "; ".join(diff[:6])
-                              + ("; ..." if len(diff) > 6 else "") + "; only [run] may change on a restart")
+        diff = _changed(old, cfg)
+        bad = [_say(*c) for c in diff if c[0] not in STEP_CONTROL]
+        if bad:
+            raise CheckpointError(f"--restart {path}: written for a different case: " + "; ".join(bad[:6])
+                                  + ("; ..." if len(bad) > 6 else "") + "; " + allowed)
+        return [_say(*c) for c in diff]
     raise CheckpointError(f"--restart {path}: written for a different case (physics hash "
-                          f"{d.get('config_hash')} vs {config_hash(cfg)}); only [run] may change on a restart")
+                          f"{d.get('config_hash')} vs {config_hash(cfg)}); {allowed}")
 
 
 def recorded_physics(restart: str | Path) -> dict | None:
@@ -171,8 +190,7 @@ def load(path: str | Path) -> dict:
 def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", recorded: dict | None = None):
     """Put a loaded checkpoint into a simulation built from the same case (``cfg``: refused,
     naming what differs, if the checkpoint was written for other physics; see :func:`check_case`)."""
-    if cfg is not None:
-        check_case(d, cfg, path, recorded)
+    changes = check_case(d, cfg, path, recorded) if cfg is not None else []
     dev, dt = sim.state.device, sim.state.dtype
     st = d["state"]
     if st["x"].shape[1] != sim.state.dim:
@@ -226,8 +244,8 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
         sim.dvdt = saved
     torch.set_rng_state(d["rng"])
     sim.info = sim._measure()
-    return d.get("extra", {})
+    return {**d.get("extra", {}), "step_control_changes": changes}
 
 
-__all__ = ["CheckpointError", "check_case", "config_hash", "differences", "load", "physics",
+__all__ = ["STEP_CONTROL", "CheckpointError", "check_case", "config_hash", "differences", "load", "physics",
            "recorded_physics", "restore", "save"]

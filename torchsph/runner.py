@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import collections
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -225,6 +226,8 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         if sim.feeder is not None and "feeder" in extra:
             sim.feeder.load_state_dict(extra["feeder"])
         resumed = extra
+        for c in extra.get("step_control_changes", []):
+            print(f"torchsph: restart from {restart}: {c}", file=sys.stderr, flush=True)
 
     deposit = list(resumed.get("deposit", [])) if resumed else []  # deposition measures at each snapshot
 
@@ -309,5 +312,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         "snapshots": len(snaps),
         "torch": torch.__version__,
     }
+    if resumed is not None:
+        summary["restart_step_control_changes"] = resumed.get("step_control_changes", [])
     sio.write_json(out_dir / "summary.json", summary)
     return summary
