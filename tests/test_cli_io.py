@@ -6,6 +6,7 @@ import xml.etree.ElementTree as ET
 
 import h5py
 import numpy as np
+import pytest
 
 from conftest import CASES, ROOT
 from torchsph.io import read_snapshot
@@ -49,14 +50,18 @@ def test_cli_run_writes_outputs(tmp_path):
     assert not list(out.glob("*.tmp"))
 
 
-def test_cli_reports_blow_up_as_one_line(tmp_path):
+@pytest.mark.parametrize("every", [None, 1])
+def test_cli_reports_blow_up_as_one_line(tmp_path, every):
+    """One line of diagnosis; where a checkpoint was written it names it and how to go on."""
     r = subprocess.run([sys.executable, "-m", "torchsph", str(CASES / "taylor_green_2d"), "--out", str(tmp_path),
                         "--steps", "300", "--quiet", "--set", "scene.nx=20", "--set", "numerics.dt_s=0.02",
-                        "--set", "numerics.allow_unstable_dt=true"],
+                        "--set", "numerics.allow_unstable_dt=true"]
+                       + ([] if every is None else ["--checkpoint-every", str(every)]),
                        cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert r.returncode == 3
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "blow-up at step" in lines[0] and "largest term" in lines[0]
+    assert ("--restart" in lines[0]) == (every is not None)
 
 
 def test_cli_thermal_run_reports_energy_balance(tmp_path):

@@ -101,7 +101,10 @@ def main(argv=None) -> int:
         print(f"torchsph: error: {e}", file=sys.stderr)
         return _abort_others(2)
     except SimulationError as e:
-        print(f"torchsph: stopped{_rank_tag()}: {e}", file=sys.stderr)
+        ck = out / "checkpoint.pt"
+        hint = (f"; the last checkpoint is {ck}: go on from it with --restart {ck} (and, past a blow-up, "
+                f"a smaller step: --set numerics.cfl=...)") if ck.exists() else ""
+        print(f"torchsph: stopped{_rank_tag()}: {e}{hint}", file=sys.stderr)
         return _abort_others(3)
     except KeyboardInterrupt as e:
         print(f"torchsph: {e or 'interrupted'}", file=sys.stderr)
