@@ -4,7 +4,9 @@ Runs a deposition case (default: its preview resolution on a longer substrate, l
 for the bead behind the wire to become steady), then reads ``deposit.json`` and reports the
 bead's added cross-section, averaged over the substrate-frame x range that has passed the
 wire and solidified and lies beyond the start-up transient, against the mass-conservation
-value pi d^2 V_wire / (4 V_sub) (2.26 mm^2 for the thesis's scene).
+value pi d^2 V_wire / (4 V_sub) (2.26 mm^2 for the thesis's scene), and against the
+cross-section of the wire actually fed while that range passed under the wire (less than
+the nominal value by the time the feed waited on contact, ``scene.wire_stall``).
 
     python scripts/deposition_bead.py cases/perpendicular_350W --t-end 0.5
     python scripts/deposition_bead.py --read OUT_DIR      # analyse a finished run
@@ -18,21 +20,27 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from torchsph.post import fed_cross_section  # noqa: E402
+
 LONG = ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[10.0e-3, 6.0e-3, 2.5e-3]",
         "scene.wire_length_m=3.0e-3", "scene.wire_offset_m=1.5e-3", "run.output_interval_s=0.01"]
 
 
 def analyse(out: Path, start_skip_m: float = 2.0e-3, pool_margin_m: float = 2.5e-3) -> dict:
     cfg = json.loads((out / "config.json").read_text())
-    d = json.loads((out / "deposit.json").read_text())[-1]
+    history = json.loads((out / "deposit.json").read_text())
+    d = history[-1]
     V = cfg["scene"]["substrate_velocity_m_s"][0]
     t = d["t_s"]
     lo, hi = -V * t + pool_margin_m, -start_skip_m  # solidified, past the start transient
     rows = [(x, a) for x, a in zip(d["bin_centres_m"], d["added_area_m2"]) if lo <= x <= hi]
     mean = sum(a for _, a in rows) / len(rows) if rows else float("nan")
+    fed = fed_cross_section(history, lo, hi, V, cfg["fluid"]["rho0_kg_m3"]) if rows else float("nan")
     return {"t_s": t, "window_m": [lo, hi], "bins": len(rows), "added_area_mm2": mean * 1e6,
             "expected_mm2": d["expected_area_m2"] * 1e6,
             "error": mean / d["expected_area_m2"] - 1 if rows else float("nan"),
+            "fed_area_mm2": fed * 1e6, "error_vs_fed": mean / fed - 1 if rows else float("nan"),
             "wire_fed_kg": d["wire_fed_kg"], "wire_inserted_kg": d["wire_inserted_kg"],
             "wire_melted_kg": d["wire_melted_kg"], "deposit_kg": d["deposit_kg"],
             "welded_kg": d.get("welded_kg"), "off_substrate_kg": d.get("off_substrate_kg"),
@@ -49,6 +57,10 @@ def main():
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--read", type=Path, default=None, help="only analyse this finished run")
     ap.add_argument("--set", action="append", default=[], help="extra overrides")
+    ap.add_argument("--start-skip-mm", type=float, default=2.0,
+                    help="leave out the first this many mm of the bead (start transient)")
+    ap.add_argument("--pool-margin-mm", type=float, default=2.5,
+                    help="leave out this many mm behind the wire (the pool, not yet solid)")
     a = ap.parse_args()
     out = a.read
     if out is None:
@@ -59,7 +71,7 @@ def main():
         r = subprocess.run(cmd, cwd=ROOT)
         if r.returncode:
             sys.exit(r.returncode)
-    res = analyse(out)
+    res = analyse(out, a.start_skip_mm * 1e-3, a.pool_margin_mm * 1e-3)
     print(json.dumps({k: v for k, v in res.items() if k != "profile_mm2"}, indent=1))
     print("added cross-section by substrate-frame x (mm, mm^2):", res["profile_mm2"])
 

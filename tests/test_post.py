@@ -142,3 +142,18 @@ def test_melt_pool_is_the_largest_connected_liquid():
     T = np.concatenate([T, np.full(drop.shape[0], 2000.0)])
     mp = post.melt_pool(snap_of(x, T=T), TL, DX, vol=np.full(x.shape[0], DX**3))
     assert abs(mp["length_m"] - 2 * a) <= DX and mp["n_detached"] == drop.shape[0]
+
+
+def test_fed_cross_section_is_the_nominal_less_the_stall():
+    """A wire (1.2 mm, 30 mm/s) over a substrate at 15 mm/s, its feed waiting from 0.10 to
+    0.12 s: the columns that passed under it in 0.05-0.09 s got the nominal 2.26 mm^2, those
+    of 0.08-0.16 s (a quarter of it stalled) 3/4 of it; spans outside the history are NaN."""
+    rho0, V, Vw, d = 7890.0, 0.015, 0.03, 1.2e-3
+    mdot = rho0 * math.pi * d**2 / 4 * Vw
+    ts = np.linspace(0.0, 0.2, 41)
+    fed = mdot * (np.minimum(ts, 0.10) + np.clip(ts - 0.12, 0.0, None))
+    hist = [{"t_s": float(t), "wire_fed_kg": float(f)} for t, f in zip(ts, fed)]
+    nominal = math.pi * d**2 / 4 * Vw / V
+    assert post.fed_cross_section(hist, -0.09 * V, -0.05 * V, V, rho0) == pytest.approx(nominal, rel=1e-12)
+    assert post.fed_cross_section(hist, -0.16 * V, -0.08 * V, V, rho0) == pytest.approx(0.75 * nominal, rel=1e-12)
+    assert math.isnan(post.fed_cross_section(hist, -0.25 * V, -0.15 * V, V, rho0))

@@ -188,6 +188,20 @@ def default_steady_range(snap: dict, cfg: dict, start_skip: float = 2.0e-3, pool
     return -V * float(snap["time"]) + pool, -start_skip
 
 
+def fed_cross_section(history: list[dict], x_lo: float, x_hi: float, V_sub: float, rho0: float) -> float:
+    """Cross-section (m^2) of the wire actually fed while the substrate-frame columns
+    x_lo <= x0 <= x_hi passed under the wire (t = -x_hi/V ... -x_lo/V; ``wire_fed_kg`` of
+    the deposition measures ``history``, linear between them): what the bead there holds if
+    all that was fed then was laid there. It is the nominal pi d^2 V_wire / (4 V_sub) less
+    the time the feed waited on contact. NaN if that time span is not in the history."""
+    ts = np.array([e["t_s"] for e in history])
+    fed = np.array([e["wire_fed_kg"] for e in history])
+    t1, t2 = -x_hi / V_sub, -x_lo / V_sub
+    if not (ts[0] - 1e-12 <= t1 < t2 <= ts[-1] + 1e-12):
+        return float("nan")
+    return float(np.interp(t2, ts, fed) - np.interp(t1, ts, fed)) / (rho0 * V_sub * (t2 - t1))
+
+
 # --- transverse section -----------------------------------------------------------------
 def section(snap: dict, cfg: dict, x0: float, png: str | Path | None = None, title: str = "") -> dict:
     """The transverse section at substrate-frame x0 (the thesis's Fig. 6.6): the particles of
