@@ -148,7 +148,8 @@ def snapshot(sim) -> dict:
     if th is not None:
         d["thermal"] = {"T_set": _cpu(th.T_set), "zeta": _cpu(th._zeta), "area": _cpu(th._area),
                         "normal": _cpu(getattr(th, "normal", None)), "lit": _cpu(getattr(th, "lit", None)),
-                        "q_cond": _cpu(th.q_cond), "t_cond": th.t_cond}
+                        "q_cond": _cpu(th.q_cond), "t_cond": th.t_cond,
+                        "zeta_ok": _cpu(th._zeta_ok), "area_ok": _cpu(th._area_ok)}
     sf = sim.surface_model
     if sf is not None:
         d["surface"] = {"normal": _cpu(sf.normal), "kappa": _cpu(sf.kappa)}
@@ -233,6 +234,7 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
         th.q_cond, th.t_cond = to(c.get("q_cond")), c.get("t_cond")
         th.T_set = to(c["T_set"])
         th._zeta, th._area = to(c["zeta"]), to(c["area"])
+        th._zeta_ok, th._area_ok = to(c.get("zeta_ok")), to(c.get("area_ok"))  # older: None
         if c["normal"] is not None:
             th.normal = to(c["normal"])
     sf = sim.surface_model

@@ -218,9 +218,14 @@ class Simulation:
     def _work_set(self) -> torch.Tensor:
         """Refresh the active set (at a neighbour rebuild) and return its work mask."""
         lit = getattr(self.thermal, "lit", None)
+        before = self.active_set.active
         self.active_set.refresh(self.state, lit)
-        if self.thermal is not None:
-            self.thermal.q_cond = None  # newly active rows need their conduction
+        th = self.thermal
+        if th is not None and th.q_cond is not None:  # held rates stay; newly active rows need theirs
+            if before is None or before.shape != self.active_set.active.shape:
+                th.q_cond = None
+            else:
+                th.q_fresh = self.active_set.active & ~before
         return self.active_set.work
 
     @property
@@ -435,7 +440,8 @@ class Simulation:
         th = self.thermal
         if th is not None:
             d.update({"th.k": th.k, "th.T_set": th.T_set, "th._zeta": th._zeta, "th._area": th._area,
-                      "th.normal": getattr(th, "normal", None), "th.q_cond": th.q_cond})
+                      "th.normal": getattr(th, "normal", None), "th.q_cond": th.q_cond,
+                      "th._zeta_ok": th._zeta_ok, "th._area_ok": th._area_ok})
             d["th.lit"] = getattr(th, "lit", None)
         sf = self.surface_model
         if sf is not None:

@@ -238,6 +238,7 @@ class Conduction:
         self.beams = list(beams)  # surface heat sources (2.7)
         self.dx = dx
         self.q_cond = None  # conduction power (W per particle) of the last evaluation, and its time
+        self.q_fresh = None  # particles made active at this step's rebuild: no held rate yet
         self.t_cond = None
         self.losses = losses if losses is not None else SurfaceLosses()
         self.delta_norm = flat_surface_delta(kernel, h_over_dx) if self.losses.active else 1.0
@@ -250,8 +251,11 @@ class Conduction:
         particles (and the walls of its work set)."""
         wall = state.phase == Phase.WALL
         self.wall_mask = wall
-        self._zeta = None  # Laplacian normalisation, recomputed once per neighbour rebuild
-        self._area = None  # surface area per particle, likewise
+        # Laplacian normalisation and surface area per particle (and the surface normal):
+        # recomputed after each neighbour rebuild, except where they cannot have changed
+        self._mark_rigid(state, nb, mask)
+        self._zeta = None
+        self._area = None
         self.rows = torch.nonzero(~wall if active is None else ~wall & active).squeeze(1)
         self.nb = nb.index_select(0, self.rows)
         self.rows_w = torch.nonzero(wall if work is None else wall & work).squeeze(1)
@@ -272,6 +276,49 @@ class Conduction:
         Tw = torch.where(sW > 0, 2.0 * Tset - sT / torch.where(sW > 0, sW, torch.ones_like(sW)), Tset)
         return T.index_copy(0, self.rows_w, Tw)
 
+    # Cached geometry: zeta and the surface area (with the normal) of a particle depend only on
+    # the positions and volumes of its neighbours. Where a particle and all its neighbours
+    # (the Verlet list, a superset of the kernel support until the next rebuild) are solid,
+    # of one rigid body and have no melt in their own lists (solid next to melt is the
+    # melt's wall, its density set by the melt's pressure), they move together and keep
+    # their volumes: the values computed at an earlier rebuild, when this was already so,
+    # still hold (to round-off) and are kept. Phase changes re-select, so a neighbour that
+    # melts marks the particle.
+    reuse_rigid_geometry = True
+    _zeta_ok = _area_ok = None  # per particle: the cached value holds and was computed rigid
+    _zeta_prev = _area_prev = _normal_prev = None
+
+    def _mark_rigid(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor):
+        fluid = state.phase == Phase.FLUID
+        # solid next to melt is the melt's wall: its density follows the melt's pressure
+        firm = (state.phase == Phase.SOLID) & ~(gather_nb(fluid, nb) & mask).any(1)
+        same = (gather_nb(firm, nb) & (gather_nb(state.body, nb) == state.body.unsqueeze(1))) | ~mask
+        self._rigid = firm & same.all(1)
+        n = state.n
+        for name in ("zeta", "area"):
+            ok = getattr(self, f"_{name}_ok")
+            val = getattr(self, f"_{name}", None)
+            keep = self.reuse_rigid_geometry and ok is not None and val is not None and ok.shape[0] == n
+            setattr(self, f"_{name}_ok", ok & self._rigid if keep else None)
+            setattr(self, f"_{name}_prev", val if keep else None)
+        self._normal_prev = getattr(self, "normal", None) if self._area_prev is not None else None
+        if self._normal_prev is None or self._normal_prev.shape[0] != n:
+            self._area_prev = self._area_ok = self._normal_prev = None
+
+    def _rows_to_compute(self, name: str):
+        """(positions in rows to compute, previous full-length values or None: compute all)."""
+        ok, prev = getattr(self, f"_{name}_ok"), getattr(self, f"_{name}_prev")
+        if prev is None:
+            return None, None
+        return torch.nonzero(~ok.index_select(0, self.rows)).squeeze(1), prev
+
+    def _computed(self, name: str, n: int):
+        """After computing: the values of every row hold; the rigid ones may be kept later."""
+        in_rows = torch.zeros(n, dtype=torch.bool, device=self.rows.device).index_fill_(0, self.rows, True)
+        setattr(self, f"_{name}_ok", in_rows & self._rigid)
+        setattr(self, f"_{name}_prev", None)
+        return in_rows
+
     def heat_rate(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
         """div(k grad T) per unit volume (W/m^3) at temperatures ``T``; 0 on walls."""
         T = self.wall_temperature(state, T)
@@ -286,10 +333,14 @@ class Conduction:
         interior lattice error only; where the kernel is truncated (a free surface,
         zeta ~ 0.5) the plain SPH operator, which acts as an insulated boundary, is kept.
         Walls count as 1."""
-        z = self._zeta_fn(state.x, state.m, state.rho, self.rows, self.nb, self.kernel, self.h,
-                          self.domain)
+        sub, prev = self._rows_to_compute("zeta")
+        rows, nb = (self.rows, self.nb) if sub is None else (self.rows.index_select(0, sub), self.nb.index_select(0, sub))
+        z = self._zeta_fn(state.x, state.m, state.rho, rows, nb, self.kernel, self.h, self.domain)
         z = torch.where((z > 0.95) & (z < 1.05), z, torch.ones_like(z))
-        return embed(self.rows, z, state.n) + self.wall_mask.to(z.dtype)
+        in_rows = self._computed("zeta", state.n)
+        if prev is not None:  # as computed whole: 1 on walls, 0 off the rows
+            return torch.where(in_rows, prev, self.wall_mask.to(z.dtype)).index_copy(0, rows, z)
+        return embed(rows, z, state.n) + self.wall_mask.to(z.dtype)
 
     def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False,
               reuse_conduction: bool = False):
@@ -299,9 +350,12 @@ class Conduction:
         dh/dt = P_i / m_i, and recovers T from h(T) = int c_eff dT (2.11): the same model as
         rho c_eff dT/dt = div(k grad T) + sources, but the latent heat is absorbed exactly
         however narrow the mushy interval is compared with one step's temperature change."""
+        fresh = self.q_fresh
+        if not per_particle:  # (a diagnosis's evaluation leaves them to the step)
+            self.q_fresh = None
         if reuse_conduction and self.q_cond is not None:  # multi-rate: see Simulation.cond_reuse
             q = self.q_cond
-            fast = self.fast_rows(state)  # next to melt or a beam: evaluated every step
+            fast = self.fast_rows(state, fresh)  # next to melt or a beam: evaluated every step
             if fast.numel():
                 if self._zeta is None:
                     self._zeta = self.zeta(state)
@@ -309,6 +363,8 @@ class Conduction:
                 qf = self._fn(state.x, self.wall_temperature(state, T), self.k, state.m, state.rho, self._zeta,
                               rows, self.nb.index_select(0, fast), self.kernel, self.h, self.domain)
                 q = q.index_copy(0, rows, qf * (state.m / state.rho).index_select(0, rows))
+                if fresh is not None and not per_particle:  # rows just made active: held from now on
+                    self.q_cond = torch.where(fresh, q, self.q_cond)
         else:
             q = self.heat_rate(state, T) * (state.m / state.rho)
             if not per_particle:
@@ -333,14 +389,17 @@ class Conduction:
         totals.setdefault("beam", torch.zeros((), dtype=T.dtype, device=T.device))
         return P, totals
 
-    def fast_rows(self, state: ParticleState) -> torch.Tensor:
+    def fast_rows(self, state: ParticleState, fresh: torch.Tensor | None = None) -> torch.Tensor:
         """Positions in ``rows`` of the particles whose conduction changes fast: melt, lit
-        particles, and every row with one of them among its neighbours."""
+        particles, and every row with one of them among its neighbours; and the ``fresh``
+        particles (just made active: no held rate yet)."""
         src = state.phase == Phase.FLUID
         lit = getattr(self, "lit", None)
         if lit is not None and lit.shape[0] == src.shape[0]:
             src = src | lit
         near = gather_nb(src, self.nb).any(1) | src.index_select(0, self.rows)
+        if fresh is not None:
+            near = near | fresh.index_select(0, self.rows)
         return torch.nonzero(near).squeeze(1)
 
     def beam_power(self, state: ParticleState, t: float, rows: torch.Tensor) -> torch.Tensor:
@@ -389,6 +448,10 @@ class Conduction:
         self.k = torch.cat([self.k, torch.full((new.n,), self.prm.conductivity, dtype=self.k.dtype,
                                                device=self.k.device)])
         self.T_set = torch.cat([self.T_set, new.T])
+        for name in ("_zeta", "_area", "normal", "_zeta_ok", "_area_ok"):  # new particles: computed
+            v = getattr(self, name, None)                                   # at the forced rebuild
+            if v is not None:
+                setattr(self, name, torch.cat([v, torch.zeros((new.n,) + v.shape[1:], dtype=v.dtype, device=v.device)]))
         if getattr(self, "lit", None) is not None:
             self.lit = torch.cat([self.lit, torch.zeros(new.n, dtype=torch.bool, device=self.lit.device)])
 
@@ -397,16 +460,23 @@ class Conduction:
         surface delta) divided by its flat-lattice sum, so that a flat surface gets
         exactly its area. Particles with |grad c| h < 0.05 (the interior) get none.
         Also sets ``self.normal``, the outward unit normal of surface particles (0 inside)."""
-        g = colour_gradient_pairs(state.x, state.m, state.rho, self.rows, self.nb, self.kernel,
-                                  self.h, self.domain)
+        sub, prev = self._rows_to_compute("area")
+        rows, nb = (self.rows, self.nb) if sub is None else (self.rows.index_select(0, sub), self.nb.index_select(0, sub))
+        g = colour_gradient_pairs(state.x, state.m, state.rho, rows, nb, self.kernel, self.h, self.domain)
         gn = g.norm(dim=-1)
         surface = gn * self.h > 0.05
         gn = torch.where(surface, gn, torch.zeros_like(gn))
         # outward unit normal n = -grad c / |grad c| on surface particles, 0 inside
         n_out = torch.where(surface.unsqueeze(-1), -g / gn.clamp_min(1e-300).unsqueeze(-1), torch.zeros_like(g))
-        self.normal = embed(self.rows, n_out, state.n)
-        V = (state.m / state.rho).index_select(0, self.rows)
-        return embed(self.rows, V * gn / self.delta_norm, state.n)
+        a = (state.m / state.rho).index_select(0, rows) * gn / self.delta_norm
+        normal_prev = self._normal_prev
+        in_rows = self._computed("area", state.n)
+        self._normal_prev = None
+        if prev is not None and normal_prev is not None:  # as computed whole: 0 off the rows
+            self.normal = torch.where(in_rows.unsqueeze(-1), normal_prev, 0.0).index_copy(0, rows, n_out)
+            return torch.where(in_rows, prev, 0.0).index_copy(0, rows, a)
+        self.normal = embed(rows, n_out, state.n)
+        return embed(rows, a, state.n)
 
     def to_enthalpy(self, T: torch.Tensor) -> torch.Tensor:
         return enthalpy(T, self.prm, 0.0)
