@@ -1,6 +1,11 @@
 """Per-step profile of the solver: where one time step spends its time.
 
     python scripts/profile_step.py [CASE_DIR] [--steps N] [--compile] [--set key=value ...]
+    python scripts/profile_step.py --restart RUN_DIR/checkpoint.pt [--steps N]
+
+With ``--restart`` the step is profiled in the state of a run's checkpoint (the case is the
+run's own ``config.json``), e.g. late in a deposition run, where the melt pool, the fed
+wire and the active set make the step's cost what it is.
 
 Prints the torch profiler's table of operators (self CPU time) over N steps after a
 warm-up. Every per-step operation is a whole-array torch call (gathers, reductions over
@@ -27,9 +32,21 @@ def main():
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--compile", action="store_true")
     ap.add_argument("--set", dest="overrides", action="append", default=[])
+    ap.add_argument("--restart", type=Path, default=None, metavar="CHECKPOINT")
     a = ap.parse_args()
-    _, cfg = load_case(a.case, a.overrides)
-    _, sim = make_simulation(cfg, compile=a.compile)
+    if a.restart is not None:
+        import json
+
+        from torchsph import checkpoint as ckpt
+        cfg = json.loads((a.restart.parent / "config.json").read_text())
+        cfg.pop("case", None)
+        _, sim = make_simulation(cfg, compile=a.compile)
+        extra = ckpt.restore(sim, ckpt.load(a.restart), cfg, str(a.restart))
+        if sim.feeder is not None and "feeder" in extra:
+            sim.feeder.load_state_dict(extra["feeder"])
+    else:
+        _, cfg = load_case(a.case, a.overrides)
+        _, sim = make_simulation(cfg, compile=a.compile)
     run_steps(sim, steps=5)
     t = time.perf_counter()
     run_steps(sim, steps=a.steps)
