@@ -224,8 +224,10 @@ class Simulation:
         if th is not None and th.q_cond is not None:  # held rates stay; newly active rows need theirs
             if before is None or before.shape != self.active_set.active.shape:
                 th.q_cond = None
-            else:
-                th.q_fresh = self.active_set.active & ~before
+            else:  # rows that left hold no rate (they are not integrated: it would be booked, not stored)
+                act = self.active_set.active
+                th.q_fresh = act & ~before
+                th.q_cond = torch.where(act, th.q_cond, torch.zeros_like(th.q_cond))
         return self.active_set.work
 
     @property
