@@ -477,8 +477,9 @@ class Simulation:
         its slab. Returns (the particles added here, the row permutation the decomposition
         applied to keep its own rows first, or None)."""
         self._stale = True
-        if self.thermal is not None:  # on every process: conduction is evaluated afresh
+        if self.thermal is not None:  # on every process: conduction and the geometry are evaluated afresh
             self.thermal.q_cond = None
+            self.thermal._zeta_ok = self.thermal._area_ok = None
         new, own = self.comm.claim(self, new)
         if new.n == 0:
             return new, None

@@ -283,7 +283,8 @@ class Conduction:
     # melt's wall, its density set by the melt's pressure), they move together and keep
     # their volumes: the values computed at an earlier rebuild, when this was already so,
     # still hold (to round-off) and are kept. Phase changes re-select, so a neighbour that
-    # melts marks the particle.
+    # melts marks the particle; particles added (a fed wire's layer) give old rows new
+    # neighbours of their own body, so the next rebuild recomputes every row.
     reuse_rigid_geometry = True
     _zeta_ok = _area_ok = None  # per particle: the cached value holds and was computed rigid
     _zeta_prev = _area_prev = _normal_prev = None
@@ -448,8 +449,8 @@ class Conduction:
         self.k = torch.cat([self.k, torch.full((new.n,), self.prm.conductivity, dtype=self.k.dtype,
                                                device=self.k.device)])
         self.T_set = torch.cat([self.T_set, new.T])
-        for name in ("_zeta", "_area", "normal", "_zeta_ok", "_area_ok"):  # new particles: computed
-            v = getattr(self, name, None)                                   # at the forced rebuild
+        for name in ("_zeta", "_area", "normal"):  # kept to length until the forced rebuild
+            v = getattr(self, name, None)
             if v is not None:
                 setattr(self, name, torch.cat([v, torch.zeros((new.n,) + v.shape[1:], dtype=v.dtype, device=v.device)]))
         if getattr(self, "lit", None) is not None:
