@@ -30,7 +30,8 @@ def measure(run: Path) -> dict:
     last = read_snapshot(snaps[-1][1])
     prof = post.bead_profile(last, cfg)
     b = post.steady_average(prof, *post.default_steady_range(last, cfg))
-    mp = post.melt_pool(last, cfg["thermal"]["liquidus_K"], cfg["scene"]["dx_m"], vol=post.volumes(last, cfg))
+    mp = post.melt_pool(last, cfg["thermal"]["liquidus_K"], cfg["scene"]["dx_m"], vol=post.volumes(last, cfg),
+                        bottom=post.substrate_bottom(cfg))
     sc = cfg["scene"]
     return {"case": Path(cfg["case"]).parent.name, "layout": sc["source_layout"], "power_W": sc["source_power_W"],
             "dx_mm": sc["dx_m"] * 1e3, "t_s": float(last["time"]), "bead_columns": b["columns"],

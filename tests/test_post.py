@@ -142,6 +142,13 @@ def test_melt_pool_is_the_largest_connected_liquid():
     T = np.concatenate([T, np.full(drop.shape[0], 2000.0)])
     mp = post.melt_pool(snap_of(x, T=T), TL, DX, vol=np.full(x.shape[0], DX**3))
     assert abs(mp["length_m"] - 2 * a) <= DX and mp["n_detached"] == drop.shape[0]
+    # and spatter falling past the substrate, bigger than the pool, is not the pool
+    fall = lattice((5e-3, 0, -0.3), (6.5e-3, 1.5e-3, -0.3 + 1.5e-3))
+    x2 = np.concatenate([x, fall])
+    T2 = np.concatenate([T, np.full(fall.shape[0], 2000.0)])
+    mp = post.melt_pool(snap_of(x2, T=T2), TL, DX, vol=np.full(x2.shape[0], DX**3), bottom=-1.1e-3)
+    assert abs(mp["length_m"] - 2 * a) <= DX and abs(mp["depth_m"] - c) <= DX
+    assert mp["n_detached"] == drop.shape[0] + fall.shape[0]
 
 
 def test_fed_cross_section_is_the_nominal_less_the_stall():

@@ -303,7 +303,8 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
       ``off_substrate_kg``: flung more than a spacing beside the substrate, spatter);
       ``welded_kg``: refrozen wire material that joined the substrate by contact
       (:meth:`WireFeeder.check_contact`; ``welded_kg`` overrides the feeder's count);
-    - the melt pool: particles above the liquidus, their volume and extents, peak temperature.
+    - the melt pool: particles above the liquidus, their volume and extents (not counting
+      spatter beside or below the substrate: ``n_liquid_away``), peak temperature.
     """
     x, m = state.x, state.m
     wire_origin = state.id >= info["wire_id0"]
@@ -325,6 +326,9 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
     hot = state.T > T_liquidus
     fused = state.T_peak > T_liquidus  # has been liquid: the fusion zone so far
     pool = {"fused_volume_m3": float((m[fused] / state.rho[fused]).sum())}
+    away = hot & (off | (x[:, 2] < -(counts[2] + 1) * dx))  # spatter beside or below the substrate
+    pool["n_liquid_away"] = int(away.sum())
+    hot = hot & ~away
     if bool(hot.any()):
         xp = x[hot]
         ext = (xp.max(0).values - xp.min(0).values).tolist()

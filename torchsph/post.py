@@ -68,12 +68,13 @@ def components(x: np.ndarray, link: float) -> np.ndarray:
 
 
 def melt_pool(snap: dict, T_liquidus: float, dx: float, top: float = 0.0, vol=None,
-              connected: bool = True) -> dict:
+              connected: bool = True, bottom: float = -np.inf) -> dict:
     """Length (x), width (y), depth below ``top`` and volume of the liquid (T > T_L), and
     the peak temperature. Extents are of the particles' cubes (centres +- dx/2). With
     ``connected`` the pool is the largest connected body of liquid (particles within 1.5 dx
     linked) that reaches below ``top`` (else the largest): drops on the wire and spatter are
-    counted apart (``n_detached``)."""
+    counted apart (``n_detached``). ``bottom``: the substrate's bottom face; liquid only
+    below it (spatter falling past the substrate) does not reach into it."""
     T = snap["temperature"]
     x = snap["position"]
     liquid = T > T_liquidus
@@ -82,7 +83,8 @@ def melt_pool(snap: dict, T_liquidus: float, dx: float, top: float = 0.0, vol=No
         idx = np.nonzero(liquid)[0]
         lab = components(x[idx], 1.5 * dx)
         counts = np.bincount(lab)
-        low = np.unique(lab[x[idx, 2] < top])  # bodies that reach into the substrate
+        z = x[idx, 2]
+        low = np.unique(lab[(z < top) & (z > bottom)])  # bodies that reach into the substrate
         big = low[counts[low].argmax()] if low.size else counts.argmax()
         out["n_detached"] = int((lab != big).sum())
         liquid = np.zeros_like(liquid)
@@ -97,13 +99,20 @@ def melt_pool(snap: dict, T_liquidus: float, dx: float, top: float = 0.0, vol=No
                   "volume_m3": float(vol[liquid].sum())}
 
 
+def substrate_bottom(cfg: dict) -> float:
+    """z of the substrate's bottom face (the top is z = 0), less a spacing; -inf if unknown."""
+    sc = cfg.get("scene", {})
+    size = sc.get("substrate_size_m")
+    return -(size[2] + sc["dx_m"]) if size is not None else -np.inf
+
+
 def melt_pool_history(run_dir: str | Path) -> list[dict]:
     cfg, snaps = load_run(run_dir)
     TL, dx = cfg["thermal"]["liquidus_K"], cfg["scene"]["dx_m"]
     out = []
     for _, p in snaps:
         s = read_snapshot(p)
-        out.append(melt_pool(s, TL, dx, vol=volumes(s, cfg)))
+        out.append(melt_pool(s, TL, dx, vol=volumes(s, cfg), bottom=substrate_bottom(cfg)))
     return out
 
 
