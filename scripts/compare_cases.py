@@ -3,6 +3,10 @@ deposition cases: a matplotlib PNG and a markdown/CSV table.
 
     python scripts/compare_cases.py --preview            # runs the four previews (minutes each)
     python scripts/compare_cases.py --read RUN250 RUN300 RUN350 RUNPERP   # finished runs
+    python scripts/compare_cases.py --read ... --time 0.30 --start-skip-mm 1 --pool-margin-mm 1.5
+
+``--time`` takes every run's snapshot nearest that time (default: each run's last), so runs
+of different length are compared at the same process time.
 
 Per case: the bead averaged over its steady part (width, height above the original top,
 penetration, added area; NaN where the run is too short for a bead behind the wire) and the
@@ -25,16 +29,23 @@ from torchsph.io import read_snapshot  # noqa: E402
 CASES = ["along_250W", "along_300W", "along_350W", "perpendicular_350W"]
 
 
-def measure(run: Path) -> dict:
+def measure(run: Path, time: float | None = None, start_skip: float = 2.0e-3, pool: float = 2.5e-3) -> dict:
     cfg, snaps = post.load_run(run)
-    last = read_snapshot(snaps[-1][1])
+    if time is None:
+        t_snap, path = snaps[-1]
+    else:
+        t_snap, path = min(snaps, key=lambda s: abs(s[0] - time))
+        if abs(t_snap - time) > 0.5 * cfg["run"]["output_interval_s"] + 1e-9:
+            raise SystemExit(f"{run}: no snapshot near t = {time} s (nearest {t_snap:.4g} s)")
+    last = read_snapshot(path)
     prof = post.bead_profile(last, cfg)
-    b = post.steady_average(prof, *post.default_steady_range(last, cfg))
+    b = post.steady_average(prof, *post.default_steady_range(last, cfg, start_skip=start_skip, pool=pool))
     mp = post.melt_pool(last, cfg["thermal"]["liquidus_K"], cfg["scene"]["dx_m"], vol=post.volumes(last, cfg),
                         bottom=post.substrate_bottom(cfg))
     sc = cfg["scene"]
     return {"case": Path(cfg["case"]).parent.name, "layout": sc["source_layout"], "power_W": sc["source_power_W"],
-            "dx_mm": sc["dx_m"] * 1e3, "t_s": float(last["time"]), "bead_columns": b["columns"],
+            "dx_mm": sc["dx_m"] * 1e3, "t_s": float(last["time"]), "bead_x_mm": "{:.2f}..{:.2f}".format(*(1e3 * v for v in b["x_range_m"])),
+            "bead_columns": b["columns"],
             "bead_width_mm": b["width_m"] * 1e3, "bead_height_mm": b["height_m"] * 1e3,
             "penetration_mm": b["penetration_m"] * 1e3, "added_area_mm2": b["added_area_m2"] * 1e6,
             "pool_length_mm": mp["length_m"] * 1e3, "pool_width_mm": mp["width_m"] * 1e3,
@@ -78,6 +89,11 @@ def main():
     ap.add_argument("--preview", action="store_true", help="run the four previews first")
     ap.add_argument("--read", nargs="+", type=Path, help="finished run folders")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "compare_cases")
+    ap.add_argument("--time", type=float, help="compare at the snapshot nearest this time, s (default: the last)")
+    ap.add_argument("--start-skip-mm", type=float, default=2.0,
+                    help="bead columns start this far behind the substrate-frame origin (default 2)")
+    ap.add_argument("--pool-margin-mm", type=float, default=2.5,
+                    help="and end this far behind the wire's axis (default 2.5: past the pool)")
     a = ap.parse_args()
     runs = a.read
     if runs is None:
@@ -88,7 +104,7 @@ def main():
                 subprocess.run([sys.executable, "-m", "torchsph", str(ROOT / "cases" / c), "--preview", "--quiet",
                                 "--out", str(out)], cwd=ROOT, check=True)
             runs.append(out)
-    rows = [measure(r) for r in runs]
+    rows = [measure(r, a.time, a.start_skip_mm * 1e-3, a.pool_margin_mm * 1e-3) for r in runs]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     with open(a.out.with_suffix(".csv"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))

@@ -285,7 +285,6 @@ class Conduction:
     # still hold (to round-off) and are kept. Phase changes re-select, so a neighbour that
     # melts marks the particle; particles added (a fed wire's layer) give old rows new
     # neighbours of their own body, so the next rebuild recomputes every row.
-    reuse_rigid_geometry = True
     _zeta_ok = _area_ok = None  # per particle: the cached value holds and was computed rigid
     _zeta_prev = _area_prev = _normal_prev = None
 
@@ -299,7 +298,7 @@ class Conduction:
         for name in ("zeta", "area"):
             ok = getattr(self, f"_{name}_ok")
             val = getattr(self, f"_{name}", None)
-            keep = self.reuse_rigid_geometry and ok is not None and val is not None and ok.shape[0] == n
+            keep = ok is not None and val is not None and ok.shape[0] == n
             setattr(self, f"_{name}_ok", ok & self._rigid if keep else None)
             setattr(self, f"_{name}_prev", val if keep else None)
         self._normal_prev = getattr(self, "normal", None) if self._area_prev is not None else None
