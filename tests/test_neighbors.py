@@ -32,11 +32,13 @@ def clouds(draw):
     return x, radius, Domain(lo, hi, periodic)
 
 
-@settings(max_examples=150, deadline=None)
-@given(clouds())
-def test_cell_list_equals_brute_force(c):
+@settings(max_examples=200, deadline=None)
+@given(clouds(), st.sampled_from([1, 2, 3]))
+def test_cell_list_equals_brute_force(c, cells_per_radius):
+    """Cells of edge radius / m (m = 1, 2, 3: 3, 5, 7 cells a stencil side, trimmed to the
+    sphere for m = 3), the inner axis's run in one range, on open and periodic axes."""
     x, radius, dom = c
-    i, j = build_pairs(x, radius, dom)
+    i, j = build_pairs(x, radius, dom, cells_per_radius)
     bi, bj = brute_force_pairs(x, radius, dom)
     got, ref = as_set(i, j), as_set(bi, bj)
     assert got == ref
@@ -76,3 +78,18 @@ def test_verlet_list_rebuilds_only_past_half_skin():
     nb, mask = vl.nb, vl.mask
     have = {(a, int(b)) for a in range(200) for b, m in zip(nb[a], mask[a]) if m}
     assert as_set(i, j) <= have
+
+
+def test_lattice_with_radius_a_multiple_of_the_spacing():
+    """A particle lattice (every particle on a cell face when the radius is a multiple of the
+    spacing, as in the scenes: radius 3.5 dx) and lattice distances just inside and just
+    outside the radius."""
+    dx = 2.5e-4
+    g = torch.arange(8, dtype=torch.float64) * dx
+    x = torch.stack(torch.meshgrid(g, g, g[:5], indexing="ij"), -1).reshape(-1, 3)
+    dom = Domain([0.0] * 3, [1.0] * 3, [False] * 3)
+    ref = as_set(*brute_force_pairs(x, 3.5 * dx, dom))
+    for m in (1, 2, 3):
+        for radius in (3.5 * dx, 3.0 * dx * (1 + 1e-9), 3.0 * dx * (1 - 1e-9), 2.0 * dx * (1 + 1e-9)):
+            assert as_set(*build_pairs(x, radius, dom, m)) == as_set(*brute_force_pairs(x, radius, dom))
+    assert len(ref) > 0

@@ -11,6 +11,7 @@ image at most within the radius.
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -70,9 +71,16 @@ class Domain:
         return torch.stack(cols, dim=-1)
 
 
-def _cell_grid(x: torch.Tensor, radius: float, domain: Domain):
-    """Integer cell coordinates (N, d), cells per axis, and the stencil offsets per axis."""
+# Cells per search radius along each axis: cells of edge radius / 2 and a 5-cell stencil
+# test (2.5 r)^3 of candidates per particle instead of (3 r)^3 (42 % fewer distances).
+CELLS_PER_RADIUS = 2
+
+
+def _cell_grid(x: torch.Tensor, radius: float, domain: Domain, m: int = 1):
+    """Integer cell coordinates (N, d) for cells of edge >= radius / m, cells per axis, and
+    the stencil offsets per axis (-m..m, or each cell once on a short periodic axis)."""
     coords, ncell, offsets = [], [], []
+    edge = radius / m
     for a in range(domain.dim):
         xa = x[:, a]
         if domain.periodic[a]:
@@ -81,71 +89,105 @@ def _cell_grid(x: torch.Tensor, radius: float, domain: Domain):
                 raise ValueError(
                     f"periodic axis {a} has length {L:g} < 2 x search radius {radius:g}: "
                     "enlarge the box or reduce the smoothing length")
-            n = max(int(L // radius), 1)
+            n = max(int(L // edge), 1)
             cs = L / n
             c = torch.floor((xa - domain.lo[a]) / cs).long().remainder(n)
-            offsets.append(list(range(-1, 2)) if n >= 3 else list(range(n)))
+            offsets.append(list(range(-m, m + 1)) if n >= 2 * m + 1 else list(range(n)))
         else:
             lo = float(xa.min())
-            n = int((float(xa.max()) - lo) // radius) + 1
-            c = torch.floor((xa - lo) / radius).long().clamp_(0, n - 1)
-            offsets.append([-1, 0, 1])
+            n = int((float(xa.max()) - lo) // edge) + 1
+            c = torch.floor((xa - lo) / edge).long().clamp_(0, n - 1)
+            offsets.append(list(range(-m, m + 1)))
         coords.append(c)
         ncell.append(n)
     return torch.stack(coords, dim=1), ncell, offsets
 
 
-def build_table(x: torch.Tensor, radius: float, domain: Domain):
+def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius: int | None = None):
     """Neighbour table of every particle: all j != i with |x_i - x_j| < radius
     (minimum image on periodic axes).
 
     Returns ``(nb, mask)`` of shape (N, k), k the largest neighbour count: row i lists
     the neighbours of i, padded with i itself (``mask`` False there). Padding with the
     particle itself makes every gradient term vanish (dx = 0, dW/dr(0) = 0), so most
-    sums need no mask. Rows are filled offset by offset, so no sort of the pairs is
-    needed.
+    sums need no mask. Rows are filled stencil pass by stencil pass, so no sort of the
+    pairs is needed. Cells are numbered with an open axis varying fastest, so the stencil's
+    cells along it are one run of the sorted order: one ``searchsorted`` range per pass
+    covers them (5^2 passes for cells of edge radius / 2 in 3-d, not 5^3).
     """
     N = x.shape[0]
     dev = x.device
     if N == 0:
         return (torch.zeros((0, 1), dtype=torch.long, device=dev),
                 torch.zeros((0, 1), dtype=torch.bool, device=dev))
+    m = CELLS_PER_RADIUS if cells_per_radius is None else int(cells_per_radius)
     x = domain.wrap(x)
-    c, ncell, offsets = _cell_grid(x, radius, domain)
-    mult = [1] * domain.dim
-    for a in range(domain.dim - 2, -1, -1):
-        mult[a] = mult[a + 1] * ncell[a + 1]
-    cid = sum(c[:, a] * mult[a] for a in range(domain.dim))
+    c, ncell, offsets = _cell_grid(x, radius, domain, m)
+    dim = domain.dim
+    # the fastest-varying axis of the numbering: an open one where there is one (its stencil
+    # cells are contiguous in the sorted order; a periodic axis wraps)
+    inner = next((a for a in reversed(range(dim)) if not domain.periodic[a]), None)
+    axes = [a for a in range(dim) if a != inner] + ([inner] if inner is not None else [])
+    mult = [1] * dim
+    for k in range(dim - 2, -1, -1):
+        mult[axes[k]] = mult[axes[k + 1]] * ncell[axes[k + 1]]
+    cid = sum(c[:, a] * mult[a] for a in range(dim))
     order = torch.argsort(cid)
     sorted_cid = cid[order]
+    # coordinates one axis at a time (1-d gathers are the fast ones), the j side in cell
+    # order: a pass reads runs of it
+    xcol = [x[:, a].contiguous() for a in range(dim)]
+    xscol = [xa.index_select(0, order) for xa in xcol]
     ar = torch.arange(N, device=dev)
     r2max = radius * radius
+    outer = [a for a in range(dim) if a != inner]
+    edge = radius / m
+    # the stencil is trimmed to the cells that can hold a neighbour: an outer offset whose
+    # cells are a distance >= radius away is skipped, and the run along the inner axis is
+    # as long as the rest of the radius needs (offsets are true offsets only where the axis
+    # is not a short periodic one, which lists each of its cells once)
+    trim = all(offsets[a] == list(range(-m, m + 1)) for a in outer)
     base = torch.zeros(N, dtype=torch.long, device=dev)  # neighbours found so far per row
     found = []
-    for off in itertools.product(*offsets):
+    for off in itertools.product(*(offsets[a] for a in outer)):
+        reach = m
+        if trim:
+            gap2 = sum(max(abs(o) - 1, 0) ** 2 for o in off) * edge * edge
+            if gap2 >= r2max:
+                continue
+            reach = min(m, math.ceil(math.sqrt(r2max - gap2) / edge))
         valid = torch.ones(N, dtype=torch.bool, device=dev)
         ncid = torch.zeros(N, dtype=torch.long, device=dev)
-        for a in range(domain.dim):
-            na = c[:, a] + off[a]
+        for a, o in zip(outer, off):
+            na = c[:, a] + o
             if domain.periodic[a]:
                 na = na.remainder(ncell[a])
             else:
                 valid &= (na >= 0) & (na < ncell[a])
             ncid += na * mult[a]
-        start = torch.searchsorted(sorted_cid, ncid, right=False)
-        end = torch.searchsorted(sorted_cid, ncid, right=True)
+        if inner is None:
+            start = torch.searchsorted(sorted_cid, ncid, right=False)
+            end = torch.searchsorted(sorted_cid, ncid, right=True)
+        else:  # the run of cells along the inner axis, clipped to the grid
+            ci = c[:, inner]
+            start = torch.searchsorted(sorted_cid, ncid + (ci - reach).clamp_(min=0), right=False)
+            end = torch.searchsorted(sorted_cid, ncid + (ci + reach).clamp_(max=ncell[inner] - 1), right=True)
         cnt = torch.where(valid, end - start, torch.zeros_like(start))
         total = int(cnt.sum())
         if total == 0:
             continue
         i = torch.repeat_interleave(ar, cnt, output_size=total)  # sorted
         pos = torch.arange(total, device=dev) + (start - (torch.cumsum(cnt, 0) - cnt)).index_select(0, i)
-        j = order.index_select(0, pos)
-        d = domain.displacement(x.index_select(0, i), x.index_select(0, j))
-        r2 = d[:, 0] * d[:, 0]
-        for a in range(1, domain.dim):
-            r2 += d[:, a] * d[:, a]
-        keep = torch.nonzero((r2 < r2max) & (i != j)).squeeze(1)
+        r2 = None
+        for a in range(dim):
+            da = xcol[a].index_select(0, i) - xscol[a].index_select(0, pos)
+            if domain.periodic[a]:
+                L = domain.length[a]
+                da -= L * torch.round(da * (1.0 / L))
+            r2 = da * da if r2 is None else r2.addcmul_(da, da)
+        keep = torch.nonzero(r2 < r2max).squeeze(1)
+        i, j = i.index_select(0, keep), order.index_select(0, pos.index_select(0, keep))
+        keep = torch.nonzero(i != j).squeeze(1)
         i, j = i.index_select(0, keep), j.index_select(0, keep)
         kept = torch.bincount(i, minlength=N)
         rank = torch.arange(i.numel(), device=dev) + (base - (torch.cumsum(kept, 0) - kept)).index_select(0, i)
@@ -154,15 +196,17 @@ def build_table(x: torch.Tensor, radius: float, domain: Domain):
     k = max(int(base.max()), 1)
     nb = ar.unsqueeze(1).repeat(1, k)
     mask = torch.zeros((N, k), dtype=torch.bool, device=dev)
-    for i, slot, j in found:
-        nb[i, slot] = j
-        mask[i, slot] = True
+    if found:
+        i, slot, j = (torch.cat(t) for t in zip(*found))
+        flat = i * k + slot
+        nb.view(-1).index_copy_(0, flat, j)
+        mask.view(-1).index_fill_(0, flat, True)
     return nb, mask
 
 
-def build_pairs(x: torch.Tensor, radius: float, domain: Domain):
+def build_pairs(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius: int | None = None):
     """All ordered pairs (i, j), i != j, with |x_i - x_j| < radius, sorted by (i, j)."""
-    nb, mask = build_table(x, radius, domain)
+    nb, mask = build_table(x, radius, domain, cells_per_radius)
     i = torch.arange(x.shape[0], device=x.device).unsqueeze(1).expand_as(nb)[mask]
     j = nb[mask]
     perm = torch.argsort(i * max(x.shape[0], 1) + j)
