@@ -44,6 +44,10 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | Non
         feeder = sim.feeder.state_dict()
         feeder["welded_kg"], feeder["n_welded"] = comm.sum([sim.feeder.welded_kg, sim.feeder.n_welded])
         feeder["n_welded"] = int(feeder["n_welded"])
+    escape = None
+    if sim.escape is not None:  # each rank books what it owned: the checkpoint holds the totals
+        n, kg = comm.sum([sim.escape.n, sim.escape.kg])
+        escape = {"n": int(n), "kg": kg}
     if comm.rank != 0:
         return
     ek, hk = list(sim.energy), list(sim._heat) if sim.thermal is not None else []
@@ -53,7 +57,7 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | Non
          "E0": sums[-1] if sums else None, "t_cond": getattr(sim.thermal, "t_cond", None),
          "n_builds": sim.nl.n_builds, "rng": torch.get_rng_state(), "extra": extra, "written": time.time(),
          "body_velocity": sim.body_velocity.cpu(), "stale": sim._stale,
-         "feeder": feeder}
+         "feeder": feeder, "escape": escape}
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
         torch.save(d, f)
@@ -80,6 +84,8 @@ def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | No
         sim.feeder.load_state_dict(d["feeder"])
         if comm.rank != 0:  # the totals stay on rank 0; each rank counts its own from here
             sim.feeder.welded_kg, sim.feeder.n_welded = 0.0, 0
+    if sim.escape is not None and d.get("escape") is not None:
+        sim.escape.load_state_dict(d["escape"] if comm.rank == 0 else {})
     sim.t, sim.step = d["t"], d["step"]
     caches = {k: v for k, v in local.items() if k.startswith(("th.", "sf."))}
     sim._select()
@@ -157,6 +163,7 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
         g = comm.gather_owned(sim, [f"state.{f}" for f in ("x", "v", "rho", "m", "p", "T", "T_peak", "phase",
                                                               "id", "body")])
         welded = comm.sum([sim.feeder.welded_kg])[0] if sim.feeder is not None else None
+        escaped = comm.sum([sim.escape.kg])[0] if sim.escape is not None else None
         if not root:
             return
         st = _state_from(g)
@@ -165,7 +172,7 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
             sc = cfg["scene"]
             deposit.append(measure(st, scene.info, sim.t, sc["substrate_velocity_m_s"][0], sc["wire_feed_m_s"],
                                    cfg["fluid"]["rho0_kg_m3"], cfg["thermal"]["liquidus_K"], scene.dx,
-                                   welded_kg=welded))
+                                   welded_kg=welded, escaped_kg=escaped))
             sio.write_json(out_dir / "deposit.json", deposit)
         name = f"snap_{len(snaps):05d}.h5"
         sio.write_snapshot(out_dir / name, st, sim.t, sim.step)
@@ -217,6 +224,10 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
     if imb:
         k = max(comm.rebalance_every, 1)
         imb_before = float(np.mean(imb[:k]))
+    escaped = None
+    if sim.escape is not None:
+        n_esc, kg_esc = comm.sum([sim.escape.n, sim.escape.kg])
+        escaped = {"n": int(n_esc), "kg": kg_esc}
     if not root:
         return None
     summary = {
@@ -233,6 +244,7 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=No
                            "last": float(np.mean(imb[-max(comm.rebalance_every, 1):])) if imb else None,
                            "rebalance_every": comm.rebalance_every, "history": [float(v) for v in imb]},
         "energy": energy, "physics_plan": physics_plan(sim), "snapshots": len(snaps), "torch": torch.__version__,
+        "escaped": escaped,
     }
     if restart is not None:
         summary["restart_step_control_changes"] = extra["step_control_changes"]

@@ -136,6 +136,21 @@ class SlabComm:
         got = self.c.allgather({k: _np(v) for k, v in d.items()})
         return {k: torch.as_tensor(np.concatenate([g[k] for g in got])).to(v.device) for k, v in d.items()}
 
+    def union_ids(self, ids):
+        got = self.c.allgather(_np(ids))
+        return torch.as_tensor(np.concatenate(got)).to(device=ids.device, dtype=ids.dtype)
+
+    def drop_rows(self, sim, keep):
+        """Rows removed on every rank alike (a particle and its ghost copies): the owned count
+        and the send / receive lists follow the new numbering, in their old order (what a
+        rank sends and its peer receives stay matched)."""
+        keep = keep.cpu()
+        new_row = torch.cumsum(keep.long(), 0) - 1
+        self.n_owned = int(keep[: self.n_owned].sum())
+        self.send = [new_row[r[keep[r]]] for r in self.send]
+        self.recv = [new_row[r[keep[r]]] for r in self.recv]
+        self._owned_cache = (None, None)
+
     def slab_of(self, x: torch.Tensor) -> np.ndarray:
         return np.searchsorted(self.bounds, _np(x[:, 0]), side="right") - 1
 

@@ -52,6 +52,14 @@ class SerialComm:
         (returns the permutation applied, or None)."""
         return None
 
+    def union_ids(self, ids: torch.Tensor) -> torch.Tensor:
+        """The particle ids every process passed, on every process."""
+        return ids
+
+    def drop_rows(self, sim, keep: torch.Tensor):
+        """After rows were removed (``keep``: the rows kept, of the old numbering): renumber
+        what the decomposition holds by row."""
+
     def begin_step(self, sim):
         """Before a step: migration and new ghosts when the last step rebuilt the pairs."""
 

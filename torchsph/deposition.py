@@ -35,6 +35,38 @@ def disc_lattice(diameter: float, dx: float, dtype, device) -> torch.Tensor:
     return best[1]
 
 
+class EscapeBox:
+    """Where the scene ends: the box a particle that has left it for good (spatter flung off
+    the bead, a drop fallen past the substrate) is removed from, ``margin`` outside the
+    substrate's box swept by its travel up to time t and, up the z axis, outside the wire's
+    top. With the margin above the search radius, a particle there is beyond the reach of
+    everything in the scene; left in, it costs a neighbour rebuild every few steps as it
+    falls. What leaves is booked (``n``, ``kg`` here; the energy balance's ``escaped``)."""
+
+    def __init__(self, lo: list[float], hi: list[float], velocity: list[float], margin: float):
+        self.lo, self.hi, self.velocity, self.margin = list(lo), list(hi), list(velocity), float(margin)
+        self.n, self.kg = 0, 0.0
+
+    def outside(self, x: torch.Tensor, t: float) -> torch.Tensor:
+        out = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        for a in range(x.shape[1]):
+            shift = self.velocity[a] * t
+            lo = min(self.lo[a], self.lo[a] + shift) - self.margin
+            hi = max(self.hi[a], self.hi[a] + shift) + self.margin
+            out |= (x[:, a] < lo) | (x[:, a] > hi)
+        return out
+
+    def book(self, n: int, kg: float):
+        self.n += int(n)
+        self.kg += float(kg)
+
+    def state_dict(self) -> dict:
+        return {"n": self.n, "kg": self.kg}
+
+    def load_state_dict(self, d: dict):
+        self.n, self.kg = int(d.get("n", 0)), float(d.get("kg", 0.0))
+
+
 class WireFeeder:
     """Feeds a vertical wire: layer j (counted from the bottom of the initial wire) is at
     z = z0 + (j + 1/2) dx - V t; layers K, K + 1, ... (K initial layers) are added as
@@ -257,7 +289,10 @@ def build(cfg, dtype, device):
     st = ParticleState.cat([sub, wire])
     hi_z = sc["wire_gap_m"] + K * dx
     dom = Domain([origin[0], origin[1], origin[2]], [off, -origin[1], hi_z], [False] * 3)
-    info = {"feeder": feeder, "n_substrate": xs.shape[0], "wire_id0": xs.shape[0],
+    # the box's top is the wire's top (fixed: the wire is fed through it), its x range moves
+    # with the substrate
+    escape = EscapeBox(dom.lo, dom.hi, [sc["substrate_velocity_m_s"][0], 0.0, 0.0], sc["escape_margin_m"])
+    info = {"feeder": feeder, "escape": escape, "n_substrate": xs.shape[0], "wire_id0": xs.shape[0],
             "substrate_counts": counts, "substrate_origin": origin, "wire_area": area,
             "wire_area_lattice": xy.shape[0] * dx * dx, "wire_mass0": float(wire.m.sum())}
     return Scene(st, dom, dx, info)
@@ -284,13 +319,24 @@ def check(cfg):
     if "thermal" not in cfg or not cfg["thermal"]["phase_change"]:
         raise CaseError("[thermal] phase_change = false: the deposition scene melts wire and substrate "
                         "(set phase_change = true)")
+    nm = cfg.get("numerics", {})
+    if "kernel" in nm:
+        from .kernels import make_kernel
+
+        reach = (make_kernel(nm["kernel"], 3).radius(nm["h_over_dx"] * sc["dx_m"])
+                 + nm["skin_over_dx"] * sc["dx_m"])
+        if sc["escape_margin_m"] <= reach:
+            raise CaseError(f"[scene] escape_margin_m = {sc['escape_margin_m']}: must exceed the search "
+                            f"radius {reach:g} m (kernel support + Verlet skin at dx_m = {sc['dx_m']}), or a "
+                            "particle removed there could still have had neighbours in the scene")
     beams = source_beams(sc)
     if beams and "thermal" in cfg:
         cfg["beam"] = cfg.get("beam", []) + beams
 
 
 def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: float, rho0: float,
-            T_liquidus: float, dx: float, bin_m: float | None = None, welded_kg: float | None = None) -> dict:
+            T_liquidus: float, dx: float, bin_m: float | None = None, welded_kg: float | None = None,
+            escaped_kg: float | None = None) -> dict:
     """Deposit and melt-pool measures at time t.
 
     - ``added_area_m2``: the bead's added cross-section per substrate-frame x bin, from mass:
@@ -303,6 +349,9 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
       ``off_substrate_kg``: flung more than a spacing beside the substrate, spatter);
       ``welded_kg``: refrozen wire material that joined the substrate by contact
       (:meth:`WireFeeder.check_contact`; ``welded_kg`` overrides the feeder's count);
+      ``escaped_kg``: mass removed from the run as it left the scene (:class:`EscapeBox`;
+      the argument overrides the box's count), part of what was fed or melted but no longer
+      in any bin;
     - the melt pool: particles above the liquidus, their volume and extents (not counting
       spatter beside or below the substrate: ``n_liquid_away``), peak temperature.
     """
@@ -344,6 +393,7 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
             "deposit_kg": float((mass_bin - sub_bin).sum()),
             "off_substrate_kg": float(m[off].sum()),
             "welded_kg": feeder.welded_kg if welded_kg is None else welded_kg,
+            "escaped_kg": (info["escape"].kg if "escape" in info else 0.0) if escaped_kg is None else escaped_kg,
             "wire_stalled_s": feeder.stall_s, "wire_stalls": feeder.n_stalls,
             "peak_temperature_K": float(state.T.max()), "melt_pool": pool,
             "n_liquid": int(hot.sum()), "n_particles": state.n}

@@ -89,7 +89,7 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
                      damping_time=nm["damping_time_s"], thermal=thermal,
                      phase_change=(cfg["thermal"]["solidus_K"], cfg["thermal"]["liquidus_K"],
                                    cfg["thermal"]["mushy_drag_1_s"]) if phase_change else None,
-                     surface=surface, active=active, feeder=scene.info.get("feeder"),
+                     surface=surface, active=active, feeder=scene.info.get("feeder"), escape=scene.info.get("escape"),
                      cond_reuse=nm["conduction_reuse"], comm=comm)
     if comm is not None:
         comm.check(sim)
@@ -225,6 +225,8 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         snaps = [tuple(x) for x in extra.get("snaps", [])]
         if sim.feeder is not None and "feeder" in extra:
             sim.feeder.load_state_dict(extra["feeder"])
+        if sim.escape is not None and "escape" in extra:
+            sim.escape.load_state_dict(extra["escape"])
         resumed = extra
         for c in extra.get("step_control_changes", []):
             print(f"torchsph: restart from {restart}: {c}", file=sys.stderr, flush=True)
@@ -254,7 +256,8 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
 
     def write_checkpoint():
         ckpt.save(sim, ck_path, chash, phys=ckpt.physics(cfg), extra={"snaps": snaps, "next_out": next_out[0], "deposit": deposit,
-                                        **({"feeder": sim.feeder.state_dict()} if sim.feeder else {})})
+                                        **({"feeder": sim.feeder.state_dict()} if sim.feeder else {}),
+                                        **({"escape": sim.escape.state_dict()} if sim.escape else {})})
     bar = tqdm(total=steps if steps is not None else t_end, disable=not progress,
                unit="step" if steps is not None else "s", dynamic_ncols=True, mininterval=0.5,
                bar_format="{l_bar}{bar}| {n:.4g}/{total:.4g} [{elapsed}<{remaining}{postfix}]")
@@ -311,6 +314,8 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         "peak_temperature_K": float(sim.state.T_peak.max()) if sim.thermal is not None else None,
         "snapshots": len(snaps),
         "torch": torch.__version__,
+        # particles removed as they left the scene (spatter): count and mass
+        "escaped": sim.escape.state_dict() if sim.escape is not None else None,
     }
     if resumed is not None:
         summary["restart_step_control_changes"] = resumed.get("step_control_changes", [])

@@ -411,6 +411,10 @@ SCENES: dict[str, SceneSpec] = {
          "wire_stall": Key("bool", default=False,
                            doc="unmelted wire that reaches solid substrate waits there (the feed pauses) "
                                "until its tip melts; false: the run stops with a diagnosis"),
+         "escape_margin_m": Key("float", default=2.0e-3, gt=0,
+                                doc="a particle this far outside the scene's box (the substrate swept by its "
+                                    "travel, up to the wire's top) has left for good (spatter): it is removed, "
+                                    "its mass and energy booked; must exceed the search radius"),
          "source_layout": Key("str", choices=("along", "perpendicular", "none"),
                               doc="sources in the plane of travel (ahead/behind) or across it"),
          "source_count": Key("int", default=2, ge=1, doc="number of sources, evenly spaced in azimuth"),

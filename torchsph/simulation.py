@@ -112,12 +112,15 @@ class Simulation:
                  damping_time: float = 0.0, thermal: Conduction | None = None,
                  phase_change: tuple[float, float, float] | None = None,
                  surface: SurfaceForces | None = None, active: ActiveSet | None = None,
-                 feeder=None, cond_reuse: float = 0.0, comm=None):
+                 feeder=None, cond_reuse: float = 0.0, comm=None, escape=None):
         """``fluid`` and ``thermal`` are the physics a scene declares; either may be None
         and then costs nothing (a conduction study has no momentum, a flow no energy).
         ``active`` leaves cold quiescent solid out of the work (:mod:`torchsph.active`);
         ``feeder`` adds particles as the run goes (``new_particles(sim, t)``, e.g. a fed
-        wire). ``cond_reuse`` = f > 0: multi-rate conduction, see :meth:`_reuse_conduction`."""
+        wire); ``escape`` says which particles have left the scene for good
+        (``outside(x, t)``, :class:`~torchsph.deposition.EscapeBox`): they are removed at the
+        next neighbour rebuild. ``cond_reuse`` = f > 0: multi-rate conduction, see
+        :meth:`_reuse_conduction`."""
         self.state = state
         self.comm = comm if comm is not None else SerialComm()  # decomposition hooks (no-ops in one process)
         self.cond_reuse = cond_reuse
@@ -125,6 +128,7 @@ class Simulation:
         self._new_body_velocity = False
         self.active_set = active if (active is not None and not domain.any_periodic) else None
         self.feeder = feeder
+        self.escape = escape
         self.plan = PlanStats()
         self.fluid_mask = state.phase == Phase.FLUID
         self.n_fluid = int(self.fluid_mask.sum())
@@ -371,7 +375,18 @@ class Simulation:
                             H_half = H_half.index_select(0, perm)
                 fm = self.fluid_mask.unsqueeze(-1)
                 s = self.state
-        self._refresh_pairs()
+        due = None
+        if self.escape is not None:  # at a rebuild point: particles that have left the scene go
+            due, keep = self._remove_escaped(self.t + dt, H_half if self.thermal is not None else None)
+            if keep is not None:
+                v_half, v_tilde = v_half[keep], v_tilde[keep]
+                if self.thermal is not None:
+                    H_half = H_half[keep]
+                    new_row = torch.cumsum(keep.long(), 0) - 1
+                    rows0 = new_row.index_select(0, rows0[keep.index_select(0, rows0)])
+                fm = self.fluid_mask.unsqueeze(-1)
+                s = self.state
+        self._refresh_pairs(force=bool(due))
         if self.fluid is not None:
             self.dvdt = self._accelerations(v_tilde)  # 2
             if self.t + dt < self.damping_time:
@@ -498,6 +513,42 @@ class Simulation:
         self.fluid_mask = self.state.phase == Phase.FLUID
         self.n_fluid = int(self.fluid_mask.sum())
         return new, self.comm.place_new(self, new.n)
+
+    def _remove_escaped(self, t: float, H_half=None):
+        """At a rebuild point (the step would rebuild the neighbour list anyway: an escaping
+        particle is a fast one, and its rows and columns go with the rebuild), remove the
+        particles outside the scene (``escape.outside``), booking their mass and stored energy
+        (``escaped``, a loss in the energy balance). Every process removes the same particles
+        (owned rows and their ghost copies, by id). Returns (whether a rebuild is due, the
+        kept-rows mask or None). ``H_half``: the specific enthalpy at the half step, what the
+        particles hold in the energy balance at this point of the step (the flows to them are
+        booked up to it)."""
+        due = self._stale or self.nl.needs_rebuild(self.state.x)
+        if self.comm.size > 1:
+            due = self.comm.any(due)
+        if not due:
+            return False, None
+        s = self.state
+        out = self.escape.outside(s.x, t)
+        own = self.comm.owned(self)
+        mine = out if own is None else out & own
+        ids = self.comm.union_ids(s.id[mine])
+        if ids.numel() == 0:
+            return True, None
+        keep = ~torch.isin(s.id, ids.to(s.id.device))
+        self.escape.book(int(mine.sum()), float(s.m[mine].sum()))
+        if self.thermal is not None:
+            lost = (s.m * H_half)[mine].sum()
+            self.energy["escaped"] = self.energy.get("escaped", 0.0) - lost
+            th = self.thermal  # neighbours change: conduction and the geometry are evaluated afresh
+            th.q_cond = None
+            th._zeta_ok = th._area_ok = None
+        n = s.n
+        self.set_particle_arrays({k: v[keep] for k, v in self.particle_arrays().items() if v.shape[0] == n})
+        self.comm.drop_rows(self, keep)
+        self._T_prev = self._T_prev[keep]
+        self._stale = True
+        return True, keep
 
     def _resting_body(self, rows: torch.Tensor):
         """For each of ``rows``: the rigid body with the largest kernel weight among its
