@@ -57,8 +57,9 @@ def _defaults(section: str, cfg: dict) -> dict:
 
 # Keys that say how the steps are taken, not what is simulated: a restart may change them
 # (a run stopped by a blow-up goes on from its last checkpoint with a smaller CFL number).
+# max_compression only says when a run is stopped as broken, not how it steps.
 STEP_CONTROL = ("numerics.cfl", "numerics.dt_s", "numerics.allow_unstable_dt", "numerics.compile",
-                "numerics.rebalance_every")
+                "numerics.rebalance_every", "numerics.max_compression")
 
 
 def _changed(old: dict, cfg: dict) -> list[tuple[str, object, object]]:
