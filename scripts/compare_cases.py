@@ -6,7 +6,9 @@ deposition cases: a matplotlib PNG and a markdown/CSV table.
     python scripts/compare_cases.py --read ... --time 0.30 --start-skip-mm 1 --pool-margin-mm 1.5
 
 ``--time`` takes every run's snapshot nearest that time (default: each run's last), so runs
-of different length are compared at the same process time.
+of different length are compared at the same process time. ``--section-mm X0`` adds the
+transverse section at substrate-frame x0 of every case, side by side (OUT_sections.png), and
+its numbers to the table.
 
 Per case: the bead averaged over its steady part (width, height above the original top,
 penetration, added area; NaN where the run is too short for a bead behind the wire) and the
@@ -29,7 +31,7 @@ from torchsph.io import read_snapshot  # noqa: E402
 CASES = ["along_250W", "along_300W", "along_350W", "perpendicular_350W"]
 
 
-def measure(run: Path, time: float | None = None, start_skip: float = 2.0e-3, pool: float = 2.5e-3) -> dict:
+def snapshot_at(run: Path, time: float | None):
     cfg, snaps = post.load_run(run)
     if time is None:
         t_snap, path = snaps[-1]
@@ -37,19 +39,32 @@ def measure(run: Path, time: float | None = None, start_skip: float = 2.0e-3, po
         t_snap, path = min(snaps, key=lambda s: abs(s[0] - time))
         if abs(t_snap - time) > 0.5 * cfg["run"]["output_interval_s"] + 1e-9:
             raise SystemExit(f"{run}: no snapshot near t = {time} s (nearest {t_snap:.4g} s)")
-    last = read_snapshot(path)
+    return cfg, read_snapshot(path)
+
+
+def measure(run: Path, time: float | None = None, start_skip: float = 2.0e-3, pool: float = 2.5e-3,
+            section_x0: float | None = None, ax=None) -> dict:
+    cfg, last = snapshot_at(run, time)
     prof = post.bead_profile(last, cfg)
     b = post.steady_average(prof, *post.default_steady_range(last, cfg, start_skip=start_skip, pool=pool))
     mp = post.melt_pool(last, cfg["thermal"]["liquidus_K"], cfg["scene"]["dx_m"], vol=post.volumes(last, cfg),
                         bottom=post.substrate_bottom(cfg))
     sc = cfg["scene"]
-    return {"case": Path(cfg["case"]).parent.name, "layout": sc["source_layout"], "power_W": sc["source_power_W"],
+    out = {"case": Path(cfg["case"]).parent.name, "layout": sc["source_layout"], "power_W": sc["source_power_W"],
             "dx_mm": sc["dx_m"] * 1e3, "t_s": float(last["time"]), "bead_x_mm": "{:.2f}..{:.2f}".format(*(1e3 * v for v in b["x_range_m"])),
             "bead_columns": b["columns"],
             "bead_width_mm": b["width_m"] * 1e3, "bead_height_mm": b["height_m"] * 1e3,
             "penetration_mm": b["penetration_m"] * 1e3, "added_area_mm2": b["added_area_m2"] * 1e6,
             "pool_length_mm": mp["length_m"] * 1e3, "pool_width_mm": mp["width_m"] * 1e3,
             "pool_depth_mm": mp["depth_m"] * 1e3, "peak_K": mp["peak_temperature_K"]}
+    if section_x0 is not None:
+        sec = post.section(last, cfg, section_x0, ax=ax)
+        out |= {"section_x0_mm": sec["x0_m"] * 1e3, "section_width_mm": sec["width_m"] * 1e3,
+                "section_height_mm": sec["height_m"] * 1e3, "section_penetration_mm": sec["penetration_m"] * 1e3,
+                "section_added_mm2": sec["added_area_m2"] * 1e6}
+        if ax is not None:
+            ax.set_title(f"{out['case']}, x0 = {out['section_x0_mm']:.2f} mm, t = {out['t_s']:.2f} s", fontsize=8)
+    return out
 
 
 def plot(rows: list[dict], png: Path):
@@ -92,6 +107,7 @@ def main():
     ap.add_argument("--time", type=float, help="compare at the snapshot nearest this time, s (default: the last)")
     ap.add_argument("--start-skip-mm", type=float, default=2.0,
                     help="bead columns start this far behind the substrate-frame origin (default 2)")
+    ap.add_argument("--section-mm", type=float, help="also the transverse section at this substrate-frame x0, mm")
     ap.add_argument("--pool-margin-mm", type=float, default=2.5,
                     help="and end this far behind the wire's axis (default 2.5: past the pool)")
     a = ap.parse_args()
@@ -104,7 +120,27 @@ def main():
                 subprocess.run([sys.executable, "-m", "torchsph", str(ROOT / "cases" / c), "--preview", "--quiet",
                                 "--out", str(out)], cwd=ROOT, check=True)
             runs.append(out)
-    rows = [measure(r, a.time, a.start_skip_mm * 1e-3, a.pool_margin_mm * 1e-3) for r in runs]
+    axes = [None] * len(runs)
+    if a.section_mm is not None:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        ncol = 2 if len(runs) > 1 else 1
+        nrow = (len(runs) + ncol - 1) // ncol
+        fig, grid = plt.subplots(nrow, ncol, figsize=(6 * ncol, 3.1 * nrow), dpi=100, squeeze=False)
+        axes = list(grid.ravel())
+        for ax in axes[len(runs):]:
+            ax.set_visible(False)
+    x0 = a.section_mm * 1e-3 if a.section_mm is not None else None
+    rows = [measure(r, a.time, a.start_skip_mm * 1e-3, a.pool_margin_mm * 1e-3, x0, ax) for r, ax in zip(runs, axes)]
+    if a.section_mm is not None:
+        fig.suptitle("transverse sections, coloured by peak temperature; cyan: fusion line (T_L); "
+                     "dashed: original top", fontsize=8)
+        fig.tight_layout()
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(a.out.with_name(a.out.name + "_sections.png"))
+        plt.close(fig)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     with open(a.out.with_suffix(".csv"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))

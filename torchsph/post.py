@@ -212,10 +212,12 @@ def fed_cross_section(history: list[dict], x_lo: float, x_hi: float, V_sub: floa
 
 
 # --- transverse section -----------------------------------------------------------------
-def section(snap: dict, cfg: dict, x0: float, png: str | Path | None = None, title: str = "") -> dict:
+def section(snap: dict, cfg: dict, x0: float, png: str | Path | None = None, title: str = "",
+            ax=None) -> dict:
     """The transverse section at substrate-frame x0 (the thesis's Fig. 6.6): the particles of
     the column at x0, coloured by peak temperature, with the fusion line (the T_L contour
-    of the peak temperature) and the original substrate top; returns its numbers."""
+    of the peak temperature) and the original substrate top; returns its numbers. Drawn
+    into ``png``, or into the matplotlib axes ``ax`` (a panel of a larger figure)."""
     dx = cfg["scene"]["dx_m"]
     TL = cfg["thermal"]["liquidus_K"]
     xs = substrate_x(snap, cfg)
@@ -223,14 +225,19 @@ def section(snap: dict, cfg: dict, x0: float, png: str | Path | None = None, tit
     j = int(np.argmin(np.abs(prof["x0_m"] - x0)))
     nums = {k: float(prof[k][j]) for k in ("width_m", "height_m", "penetration_m", "added_area_m2")}
     nums["x0_m"] = float(prof["x0_m"][j])
-    if png is not None:
+    if png is not None or ax is not None:
         import matplotlib
-        matplotlib.use("Agg")
+        if ax is None:
+            matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
         sel = (np.abs(xs - nums["x0_m"]) < 0.5 * dx) & ~((snap["body"] == WIRE) & (snap["phase"] == SOLID))
         y, z, Tp = snap["position"][sel, 1], snap["position"][sel, 2], snap["peak_temperature"][sel]
-        fig, ax = plt.subplots(figsize=(6, 3.2), dpi=110)
+        own = ax is None
+        if own:
+            fig, ax = plt.subplots(figsize=(6, 3.2), dpi=110)
+        else:
+            fig = ax.figure
         sc_ = ax.scatter(y * 1e3, z * 1e3, c=Tp, s=14, cmap="inferno", marker="s")
         sub = z < 0.5 * dx  # the fusion line runs through the substrate; the bead above is all fused
         if sub.sum() > 3 and Tp[sub].max() > TL > Tp[sub].min():
@@ -243,9 +250,10 @@ def section(snap: dict, cfg: dict, x0: float, png: str | Path | None = None, tit
         fig.colorbar(sc_, ax=ax, label="peak temperature, K")
         ax.set_title(title or f"section x0 = {nums['x0_m'] * 1e3:.2f} mm, t = {float(snap['time']):.3f} s; "
                      "cyan: fusion line (T_L)", fontsize=8)
-        fig.tight_layout()
-        fig.savefig(png)
-        plt.close(fig)
+        if own:
+            fig.tight_layout()
+            fig.savefig(png)
+            plt.close(fig)
     return nums
 
 
