@@ -58,6 +58,28 @@ def test_half_cylinder_bead_on_a_block():
     assert abs(b["added_area_m2"] / (math.pi * R * R / 2) - 1) < 0.05
 
 
+def test_bead_columns_stay_on_the_lattice_with_spatter_far_away():
+    """A drop fallen far below and behind the substrate (off the lattice, as spatter that
+    leaked through lies) neither moves the columns off the substrate's lattice nor adds to
+    any column: the profile equals the one without it."""
+    R = 0.6e-3
+    block = lattice((0, -1.5e-3, -1e-3), (4e-3, 1.5e-3, 0))
+    cand = lattice((0, -R, 0), (4e-3, R, R))
+    x = np.concatenate([block, cand[cand[:, 1] ** 2 + cand[:, 2] ** 2 < R * R]])
+    n = x.shape[0]
+    phase = np.full(n, 2)
+    cfg = cfg_of([4e-3, 3e-3, 1e-3])
+    ref = post.bead_profile(snap_of(x, phase=phase), cfg)
+    fallen = np.array([[-37.31e-3, 0.4e-3, -50.0e-3], [-37.2e-3, 0.5e-3, -50.1e-3]])
+    s = snap_of(np.concatenate([x, fallen]), phase=np.concatenate([phase, [0, 0]]),
+                body=np.concatenate([np.ones(n, int), [0, 0]]))
+    prof = post.bead_profile(s, cfg)
+    on = (prof["x0_m"] > 0) & (prof["x0_m"] < 4e-3)
+    assert np.allclose(prof["x0_m"][on], ref["x0_m"], atol=1e-12)  # the lattice's column centres
+    for k in ("width_m", "height_m", "penetration_m", "added_area_m2"):
+        assert np.allclose(prof[k][on], ref[k], atol=1e-15), k
+
+
 def test_ellipsoidal_melt_pool():
     """T > T_L inside the half ellipsoid (x/a)^2 + (y/b)^2 + (z/c)^2 < 1, z < 0, a = 1.5 mm,
     b = 0.7 mm, c = 0.4 mm: length 2a, width 2b, depth c within one spacing; volume within

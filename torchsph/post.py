@@ -19,7 +19,7 @@ import numpy as np
 
 from .io import read_snapshot
 
-SOLID, WIRE = 2, 2  # phase code of rigid solid; body tag of the wire
+SOLID, SUBSTRATE, WIRE = 2, 1, 2  # phase code of rigid solid; body tags of substrate and wire
 
 
 # --- loading ----------------------------------------------------------------------
@@ -149,7 +149,14 @@ def bead_profile(snap: dict, cfg: dict, T_liquidus: float | None = None, x0=None
     vol = volumes(snap, cfg) if vol is None else vol
     deposit = ~((snap["body"] == WIRE) & (snap["phase"] == SOLID))
     deposit &= ~detached(snap, dx, deposit)
+    size = sc.get("substrate_size_m")
+    if size is not None:  # spatter fallen past the substrate or flung beside it is not the bead's
+        deposit &= (pos[:, 2] >= -size[2] - dx) & (np.abs(pos[:, 1]) <= 0.5 * size[1] + dx)
     lo = x0[deposit].min()
+    rigid = deposit & (snap["body"] == SUBSTRATE) & (snap["phase"] == SOLID)
+    if rigid.any():  # columns centred on the substrate's lattice, whatever lies furthest back
+        anchor = x0[rigid].min()
+        lo = anchor - dx * np.ceil((anchor - lo) / dx - 1e-6)
     k = np.floor((x0 - lo) / dx + 0.5).astype(np.int64)  # columns centred on the lattice
     nb = int(k[deposit].max()) + 1
     centres = lo + np.arange(nb) * dx
