@@ -151,7 +151,7 @@ def bead_profile(snap: dict, cfg: dict, T_liquidus: float | None = None, x0=None
     deposit &= ~detached(snap, dx, deposit)
     size = sc.get("substrate_size_m")
     if size is not None:  # spatter fallen past the substrate or flung beside it is not the bead's
-        deposit &= (pos[:, 2] >= -size[2] - dx) & (np.abs(pos[:, 1]) <= 0.5 * size[1] + dx)
+        deposit &= (pos[:, 2] >= substrate_bottom(cfg)) & (np.abs(pos[:, 1]) <= 0.5 * size[1] + dx)
     lo = x0[deposit].min()
     rigid = deposit & (snap["body"] == SUBSTRATE) & (snap["phase"] == SOLID)
     if rigid.any():  # columns centred on the substrate's lattice, whatever lies furthest back

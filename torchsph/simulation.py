@@ -386,7 +386,10 @@ class Simulation:
                     rows0 = new_row.index_select(0, rows0[keep.index_select(0, rows0)])
                 fm = self.fluid_mask.unsqueeze(-1)
                 s = self.state
-        self._refresh_pairs(force=bool(due))
+        if due is None:
+            self._refresh_pairs()
+        elif due:  # decided above (on every process): no second test, no second collective
+            self._refresh_pairs(force=True)
         if self.fluid is not None:
             self.dvdt = self._accelerations(v_tilde)  # 2
             if self.t + dt < self.damping_time:
