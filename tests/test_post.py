@@ -186,3 +186,24 @@ def test_fed_cross_section_is_the_nominal_less_the_stall():
     assert post.fed_cross_section(hist, -0.09 * V, -0.05 * V, V, rho0) == pytest.approx(nominal, rel=1e-12)
     assert post.fed_cross_section(hist, -0.16 * V, -0.08 * V, V, rho0) == pytest.approx(0.75 * nominal, rel=1e-12)
     assert math.isnan(post.fed_cross_section(hist, -0.25 * V, -0.15 * V, V, rho0))
+
+
+def test_bead_settling_tells_filled_bins_from_growing_ones():
+    """Three bins: one full for 0.1 s, one still filling (+20 % in the last 0.05 s), one
+    empty (under the wire). Only the full one is settled, and the settled mean is its area;
+    a lag longer than the history is an error, as are bins that moved."""
+    ts = [0.0, 0.05, 0.10, 0.15]
+    hist = [{"t_s": t, "bin_centres_m": [-3e-3, -2e-3, -1e-3],
+             "added_area_m2": [2.2e-6 if t >= 0.05 else 1.0e-6, 1.5e-6 + 4e-6 * (t - 0.10) if t >= 0.10 else 0.0, 0.0]}
+            for t in ts]
+    s = post.bead_settling(hist, -3.5e-3, -0.5e-3, lag_s=0.05, tolerance=0.05)
+    assert s["t_before_s"] == 0.10
+    assert [r["settled"] for r in s["bins"]] == [True, False, False]
+    assert s["bins"][1]["change"] == pytest.approx(0.2e-6 / 1.7e-6, rel=1e-12)
+    assert s["settled_bins"] == 1 and s["settled_m2"] == pytest.approx(2.2e-6, rel=1e-12)
+    assert post.bead_settling(hist, -3.5e-3, -2.5e-3, lag_s=0.05)["bins"][0]["x0_m"] == -3e-3
+    with pytest.raises(ValueError, match="no entry"):
+        post.bead_settling(hist, -3.5e-3, -0.5e-3, lag_s=0.2)
+    moved = hist[:-1] + [dict(hist[-1], bin_centres_m=[-2.5e-3, -1.5e-3, -0.5e-3])]
+    with pytest.raises(ValueError, match="bins differ"):
+        post.bead_settling(moved, -3.5e-3, -0.5e-3, lag_s=0.05)

@@ -218,6 +218,38 @@ def fed_cross_section(history: list[dict], x_lo: float, x_hi: float, V_sub: floa
     return float(np.interp(t2, ts, fed) - np.interp(t1, ts, fed)) / (rho0 * V_sub * (t2 - t1))
 
 
+def bead_settling(history: list[dict], x_lo: float, x_hi: float, lag_s: float,
+                  tolerance: float = 0.05) -> dict:
+    """Whether the bead's added cross-section has stopped changing: for each bin of the
+    deposition measures ``history`` (``bin_centres_m``/``added_area_m2``, the bins the
+    same in every entry) with x_lo <= x0 <= x_hi, its area in the last entry and in the
+    last entry at least ``lag_s`` older, and the relative change between them (of the
+    later value). A bin is settled when that change is within ``tolerance``; ``settled_mm2``
+    is the mean over the settled bins (NaN when none is). Melt running back along the bead
+    keeps filling a bin for a while after the wire has passed it; a bead is steady where
+    its bins are settled."""
+    if not history:
+        raise ValueError("bead_settling: empty history")
+    last = history[-1]
+    t_now = last["t_s"]
+    earlier = [e for e in history if e["t_s"] <= t_now - lag_s + 1e-12]
+    if not earlier:
+        raise ValueError(f"bead_settling: no entry {lag_s} s before t = {t_now} s")
+    then = earlier[-1]
+    if then["bin_centres_m"] != last["bin_centres_m"]:
+        raise ValueError("bead_settling: the bins differ between the two entries")
+    rows = []
+    for x, a, a0 in zip(last["bin_centres_m"], last["added_area_m2"], then["added_area_m2"]):
+        if x_lo <= x <= x_hi:
+            change = (a - a0) / a if a > 0 else float("inf")
+            rows.append({"x0_m": x, "area_m2": a, "area_before_m2": a0, "change": change,
+                         "settled": abs(change) <= tolerance})
+    good = [r["area_m2"] for r in rows if r["settled"]]
+    return {"t_s": t_now, "t_before_s": then["t_s"], "tolerance": tolerance, "bins": rows,
+            "settled_bins": len(good),
+            "settled_m2": float(np.mean(good)) if good else float("nan")}
+
+
 # --- transverse section -----------------------------------------------------------------
 def section(snap: dict, cfg: dict, x0: float, png: str | Path | None = None, title: str = "",
             ax=None) -> dict:
