@@ -439,3 +439,30 @@ def test_particles_leaving_the_scene_are_removed_and_booked():
 def test_escape_margin_must_exceed_the_search_radius():
     with pytest.raises(CaseError, match=r"escape_margin_m = 0.0005: must exceed the search radius"):
         small("scene.escape_margin_m=0.5e-3")
+
+
+def test_with_wire_stall_the_feed_also_waits_while_it_squeezes_melt():
+    """Melt caught under the solid tip (1.25 spacings below it) and compressed by 20 % makes
+    the feed wait (scene.wire_squeeze_limit = 0.15); compressed by 10 %, or compressed by
+    20 % but 2 spacings or more from the wire, it does not. Without wire_stall nothing waits."""
+    from torchsph.state import Phase
+
+    dx = 2.5e-4
+    for stall in (True, False):
+        cfg = small("scene.source_layout=\"none\"", f"scene.wire_gap_m={0.25 * dx}", f"scene.wire_stall={str(stall).lower()}")
+        scene, sim = make_simulation(cfg)
+        s, feeder = sim.state, scene.info["feeder"]
+        R = 0.5 * cfg["scene"]["wire_diameter_m"]
+        r = s.x[:, :2].norm(dim=1)
+        tip = float(s.x[s.body == WIRE, 2].min())
+        assert tip == pytest.approx(0.75 * dx)
+        top = (s.body != WIRE) & (s.x[:, 2] > -dx)
+        under = top & (r < R - 0.5 * dx)  # 1.25 spacings below the tip's layer
+        away = top & (r > R + 2.5 * dx)   # as deep, 2+ spacings aside
+        assert int(under.sum()) > 0 and int(away.sum()) > 0
+        assert not bool(feeder.touches_solid_substrate(s).any())  # no solid-on-solid contact
+        rho0 = cfg["fluid"]["rho0_kg_m3"]
+        for where, comp, waits in ((under, 0.20, stall), (under, 0.10, False), (away, 0.20, False)):
+            s.phase = torch.where(where, torch.full_like(s.phase, int(Phase.FLUID)), torch.full_like(s.phase, int(Phase.SOLID)))
+            s.rho = torch.where(where, torch.full_like(s.rho, (1.0 + comp) * rho0), torch.full_like(s.rho, rho0))
+            assert feeder.check_contact(sim) is waits, (stall, comp)

@@ -76,7 +76,8 @@ class WireFeeder:
 
     def __init__(self, layer_xy: torch.Tensor, z0: float, n_layers: int, dx: float, speed: float,
                  mass: float, rho0: float, T0: float, next_id: int, start: float = 0.0,
-                 contact: str = "stop", T_melt: float | None = None, stall: bool = False):
+                 contact: str = "stop", T_melt: float | None = None, stall: bool = False,
+                 squeeze: float = 0.15):
         self.layer_xy = layer_xy
         self.z0, self.K, self.dx, self.speed = z0, n_layers, dx, speed
         self.start = start  # the feed starts at this time (the sources may preheat first)
@@ -86,6 +87,7 @@ class WireFeeder:
         self.n_fed = 0  # layers added so far
         self.contact, self.T_melt = contact, T_melt  # see check_contact
         self.stall = stall  # unmelted wire on solid substrate waits instead of stopping the run
+        self.squeeze = squeeze  # with stall: melt this compressed beside the solid wire also makes it wait
         self.welded_kg, self.n_welded = 0.0, 0  # refrozen wire material welded to the substrate
         self.fed = 0.0  # length of wire fed so far (the distance the solid wire has moved)
         self.stalled = False  # the wire rests on solid substrate; its feed waits
@@ -152,7 +154,13 @@ class WireFeeder:
           where it touches it and moves with it from then on (its mass is counted in
           ``welded_kg``); with ``"stop"`` it stops the run like unmelted wire.
 
-        Returns whether unmelted wire rests on solid substrate (the same on every process)."""
+        - with ``stall``, the feed also waits while melt within 1.5 spacings of the solid wire
+          is compressed by more than ``squeeze`` (a fraction of rho0): melt caught between the
+          rigid tip and solid substrate, a layer or two of particles with no way out at this
+          resolution, which the rigid feed would otherwise squeeze until the weakly
+          compressible model breaks (it relaxes while the wire waits).
+
+        Returns whether the feed waits (the same on every process)."""
         s = sim.state
         low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < 0.5 * self.dx)
         hit = bool(low.any())  # one sync per step; the rest only on contact
@@ -174,7 +182,7 @@ class WireFeeder:
         blocked = False
         if self.stall:  # every process takes part, touching or not
             unmelted = low & (s.T_peak <= (self.T_melt or math.inf)) if hit else None
-            blocked = sim.comm.any(hit and bool(unmelted.any()))
+            blocked = sim.comm.any((hit and bool(unmelted.any())) or self.squeezed(s))
             if hit:
                 low = low & ~unmelted
                 hit = bool(low.any())
@@ -194,6 +202,19 @@ class WireFeeder:
         raise SimulationError(where.format("wire material that melted and froze back onto the wire reached "
                                            "into the substrate") + ": scene.wire_contact = \"weld\" lets it join "
                                            "the substrate")
+
+    def squeezed(self, s) -> bool:
+        """Whether melt within 1.5 spacings of the solid wire is compressed by more than
+        ``squeeze`` (one reduction a step; the distances only when some melt is that dense)."""
+        dense = (s.phase == Phase.FLUID) & (s.rho > (1.0 + self.squeeze) * self.rho0)
+        if not bool(dense.any()):
+            return False
+        wire = (s.body == WIRE) & (s.phase == Phase.SOLID)
+        if not bool(wire.any()):
+            return False
+        xw = s.x[wire]
+        xw = xw[xw[:, 2] < xw[:, 2].min() + 3.0 * self.dx]  # the tip's layers
+        return bool((torch.cdist(s.x[dense], xw) < 1.5 * self.dx).any())
 
     def touches_solid_substrate(self, s, low: torch.Tensor | None = None) -> torch.Tensor:
         """Mask of the solid wire particles at the substrate's top or below (centre less than
@@ -284,7 +305,7 @@ def build(cfg, dtype, device):
     feeder = WireFeeder(xy, sc["wire_gap_m"], K, dx, sc["wire_feed_m_s"], rho0 * area * dx / xy.shape[0],
                         rho0, T0, next_id=xs.shape[0], start=sc["wire_feed_start_s"],
                         contact=sc["wire_contact"], T_melt=cfg["thermal"]["liquidus_K"] if "thermal" in cfg else None,
-                        stall=sc["wire_stall"])
+                        stall=sc["wire_stall"], squeeze=sc["wire_squeeze_limit"])
     wire = feeder.layers(torch.arange(K, device=device), 0.0)
     st = ParticleState.cat([sub, wire])
     hi_z = sc["wire_gap_m"] + K * dx

@@ -411,6 +411,10 @@ SCENES: dict[str, SceneSpec] = {
          "wire_stall": Key("bool", default=False,
                            doc="unmelted wire that reaches solid substrate waits there (the feed pauses) "
                                "until its tip melts; false: the run stops with a diagnosis"),
+         "wire_squeeze_limit": Key("float", default=0.15, gt=0, lt=0.3,
+                                   doc="with wire_stall: the feed also waits while melt within 1.5 spacings "
+                                       "of the solid wire is compressed by more than this fraction (melt "
+                                       "squeezed between the tip and solid substrate, with no way out)"),
          "escape_margin_m": Key("float", default=2.0e-3, gt=0,
                                 doc="a particle this far outside the scene's box (the substrate swept by its "
                                     "travel, up to the wire's top) has left for good (spatter): it is removed, "
