@@ -207,3 +207,17 @@ def test_bead_settling_tells_filled_bins_from_growing_ones():
     moved = hist[:-1] + [dict(hist[-1], bin_centres_m=[-2.5e-3, -1.5e-3, -0.5e-3])]
     with pytest.raises(ValueError, match="bins differ"):
         post.bead_settling(moved, -3.5e-3, -0.5e-3, lag_s=0.05)
+
+
+def test_settling_report_reads_the_runs_deposit_history(tmp_path):
+    """post.summarize's bead_settling entry: from RUN/deposit.json; a missing file or a
+    history shorter than the lag is reported, not raised."""
+    import json
+    assert post.settling_report(tmp_path, -3e-3, -1e-3) == {"error": "no deposit.json"}
+    hist = [{"t_s": t, "bin_centres_m": [-2e-3, -1e-3], "added_area_m2": [2.0e-6, 1.0e-6 + 1e-5 * t]}
+            for t in (0.0, 0.05, 0.10)]
+    (tmp_path / "deposit.json").write_text(json.dumps(hist))
+    rep = post.settling_report(tmp_path, -2.5e-3, -0.5e-3)
+    assert [b["settled"] for b in rep["bins"]] == [True, False]  # +0.5e-6 of 2e-6 in 0.05 s
+    assert rep["settled_m2"] == pytest.approx(2.0e-6, rel=1e-12)
+    assert "no entry" in post.settling_report(tmp_path, -2.5e-3, -0.5e-3, lag_s=0.2)["error"]

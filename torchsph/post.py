@@ -439,6 +439,18 @@ def timelapse(run_dir: str | Path, path: str | Path, what: str = "temperature", 
 
 
 # --- command line ---------------------------------------------------------------------------
+def settling_report(run_dir: Path, x_lo: float, x_hi: float, lag_s: float = 0.05) -> dict:
+    """:func:`bead_settling` of the run's ``deposit.json`` over x_lo..x_hi (what of the
+    bead there has stopped filling), or the reason it cannot be said."""
+    path = Path(run_dir) / "deposit.json"
+    if not path.exists():
+        return {"error": "no deposit.json"}
+    try:
+        return bead_settling(json.loads(path.read_text()), x_lo, x_hi, lag_s)
+    except ValueError as e:
+        return {"error": str(e)}
+
+
 def summarize(run_dir: str | Path, section_x: float | None = None, exaca: bool = False,
               render_png: bool = False, gif: bool = False) -> dict:
     run_dir = Path(run_dir)
@@ -451,6 +463,7 @@ def summarize(run_dir: str | Path, section_x: float | None = None, exaca: bool =
         prof = bead_profile(last, cfg)
         lo, hi = default_steady_range(last, cfg)
         res["bead_steady"] = steady_average(prof, lo, hi)
+        res["bead_settling"] = settling_report(run_dir, lo, hi)
         res["bead_profile"] = {k: np.asarray(v).tolist() for k, v in prof.items()}
         sx = section_x if section_x is not None else 0.5 * (lo + hi)
         res["section"] = section(last, cfg, sx, out_dir / "section.png")
@@ -488,6 +501,13 @@ def main(argv=None):
         print(f"bead over x0 in [{b['x_range_m'][0] * 1e3:.2f}, {b['x_range_m'][1] * 1e3:.2f}] mm "
               f"({b['columns']} columns): width {b['width_m'] * 1e3:.3f} mm, height {b['height_m'] * 1e3:.3f} mm, "
               f"penetration {b['penetration_m'] * 1e3:.3f} mm, added area {b['added_area_m2'] * 1e6:.3f} mm^2")
+        st = res["bead_settling"]
+        if "error" in st:
+            print(f"bead settling: {st['error']}")
+        else:
+            print(f"bead settling (deposit.json, 1 mm bins, changed <= {st['tolerance']:.0%} since t = "
+                  f"{st['t_before_s']:.3g} s): {st['settled_bins']} of {len(st['bins'])} bins settled, "
+                  f"mean added area {st['settled_m2'] * 1e6:.3f} mm^2")
     print(f"wrote {Path(a.run) / 'post'}")
     return 0
 
