@@ -163,7 +163,11 @@ class WireFeeder:
         Returns whether the feed waits (the same on every process)."""
         s = sim.state
         low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < 0.5 * self.dx)
-        hit = bool(low.any())  # one sync per step; the rest only on contact
+        dense = (s.phase == Phase.FLUID) & (s.rho > (1.0 + self.squeeze) * self.rho0) if self.stall else None
+        if dense is None:
+            hit, some_dense = bool(low.any()), False  # one sync per step; the rest only on contact
+        else:
+            hit, some_dense = torch.stack([low.any(), dense.any()]).tolist()
         if hit:
             low = self.touches_solid_substrate(s, low)
             hit = bool(low.any())
@@ -182,7 +186,7 @@ class WireFeeder:
         blocked = False
         if self.stall:  # every process takes part, touching or not
             unmelted = low & (s.T_peak <= (self.T_melt or math.inf)) if hit else None
-            blocked = sim.comm.any((hit and bool(unmelted.any())) or self.squeezed(s))
+            blocked = sim.comm.any((hit and bool(unmelted.any())) or (some_dense and self.squeezed(s, dense)))
             if hit:
                 low = low & ~unmelted
                 hit = bool(low.any())
@@ -203,12 +207,10 @@ class WireFeeder:
                                            "into the substrate") + ": scene.wire_contact = \"weld\" lets it join "
                                            "the substrate")
 
-    def squeezed(self, s) -> bool:
-        """Whether melt within 1.5 spacings of the solid wire is compressed by more than
-        ``squeeze`` (one reduction a step; the distances only when some melt is that dense)."""
-        dense = (s.phase == Phase.FLUID) & (s.rho > (1.0 + self.squeeze) * self.rho0)
-        if not bool(dense.any()):
-            return False
+    def squeezed(self, s, dense: torch.Tensor) -> bool:
+        """Whether any of the ``dense`` melt (compressed by more than ``squeeze``; the caller
+        tests that mask with the contact check, in one sync) lies within 1.5 spacings of the
+        solid wire's tip layers."""
         wire = (s.body == WIRE) & (s.phase == Phase.SOLID)
         if not bool(wire.any()):
             return False

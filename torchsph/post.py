@@ -224,7 +224,7 @@ def bead_settling(history: list[dict], x_lo: float, x_hi: float, lag_s: float,
     deposition measures ``history`` (``bin_centres_m``/``added_area_m2``, the bins the
     same in every entry) with x_lo <= x0 <= x_hi, its area in the last entry and in the
     last entry at least ``lag_s`` older, and the relative change between them (of the
-    later value). A bin is settled when that change is within ``tolerance``; ``settled_mm2``
+    later value). A bin is settled when that change is within ``tolerance``; ``settled_m2``
     is the mean over the settled bins (NaN when none is). Melt running back along the bead
     keeps filling a bin for a while after the wire has passed it; a bead is steady where
     its bins are settled."""
