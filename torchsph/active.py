@@ -31,7 +31,7 @@ def dilate(x: torch.Tensor, seed: torch.Tensor, radius: float) -> torch.Tensor:
     """Mask of the particles within ``radius`` of a seed particle (voxels of radius / 2:
     it may include some up to 2 radius further). No loop over particles: a loop over the
     (2k + 1)^d voxel offsets only."""
-    if radius <= 0 or not bool(seed.any()):
+    if radius <= 0 or not bool(seed.any()) or bool(seed.all()):
         return seed.clone()
     cell = 0.5 * radius
     k = math.ceil(radius / cell)

@@ -57,9 +57,10 @@ def _defaults(section: str, cfg: dict) -> dict:
 
 # Keys that say how the steps are taken, not what is simulated: a restart may change them
 # (a run stopped by a blow-up goes on from its last checkpoint with a smaller CFL number).
-# max_compression only says when a run is stopped as broken, not how it steps.
+# max_compression only says when a run is stopped as broken, not how it steps; partial_rebuild
+# only how the same neighbour pairs are found.
 STEP_CONTROL = ("numerics.cfl", "numerics.dt_s", "numerics.allow_unstable_dt", "numerics.compile",
-                "numerics.rebalance_every", "numerics.max_compression")
+                "numerics.rebalance_every", "numerics.max_compression", "numerics.partial_rebuild")
 
 
 def _changed(old: dict, cfg: dict) -> list[tuple[str, object, object]]:
@@ -138,7 +139,8 @@ def snapshot(sim) -> dict:
         "E0": getattr(sim, "_E0", None),
         "body_velocity": _cpu(sim.body_velocity),
         "nl": {"x_ref": _cpu(sim.nl.x_ref), "nb": _cpu(sim.nl.nb), "mask": _cpu(sim.nl.mask),
-               "n_builds": sim.nl.n_builds},
+               "n_builds": sim.nl.n_builds, "n_partial": sim.nl.n_partial,
+               "static": _cpu(sim.nl.static), "x_full": _cpu(sim.nl.x_full)},
         "rng": torch.get_rng_state(),
         "stale": sim._stale,
         "plan": {"steps": sim.plan.steps, "sums": sim.plan.sums},
@@ -211,6 +213,10 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     nl = d["nl"]
     sim.nl.x_ref, sim.nl.nb, sim.nl.mask = to(nl["x_ref"]), to(nl["nb"]), to(nl["mask"])
     sim.nl.n_builds = nl["n_builds"]
+    # the partial rebuild's body set (absent in older checkpoints: the next rebuild is a full one)
+    sim.nl.n_partial = nl.get("n_partial", 0)
+    sim.nl.static = to(nl["static"]) if nl.get("static") is not None else None
+    sim.nl.x_full = to(nl["x_full"]) if nl.get("x_full") is not None else None
     sim._stale = d.get("stale", False)
     if sim.active_set is not None and "active" in d:
         a = d["active"]

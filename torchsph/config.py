@@ -144,6 +144,9 @@ NUMERICS = {
                            doc="|rho/rho0 - 1| above which the run stops as blown up"),
     "skip_cold_solid": Key("bool", default=True,
                            doc="leave solid within active_tolerance_K of ambient out of the work (--no-skip: false)"),
+    "partial_rebuild": Key("bool", default=True,
+                           doc="neighbour rebuilds keep the largest rigid body's mutual pairs and search "
+                               "only the other rows (one process; false: full rebuilds)"),
     "conduction_reuse": Key("float", default=0.1, ge=0, le=1,
                             doc="multi-rate conduction: re-evaluate it once per this fraction of the thermal "
                                 "limit (0 = every step)"),

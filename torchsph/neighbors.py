@@ -103,9 +103,11 @@ def _cell_grid(x: torch.Tensor, radius: float, domain: Domain, m: int = 1):
     return torch.stack(coords, dim=1), ncell, offsets
 
 
-def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius: int | None = None):
+def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius: int | None = None,
+                rows: torch.Tensor | None = None):
     """Neighbour table of every particle: all j != i with |x_i - x_j| < radius
-    (minimum image on periodic axes).
+    (minimum image on periodic axes). With ``rows`` (indices into ``x``), the table of those
+    particles only (row r lists the neighbours of ``rows[r]`` among all of ``x``).
 
     Returns ``(nb, mask)`` of shape (N, k), k the largest neighbour count: row i lists
     the neighbours of i, padded with i itself (``mask`` False there). Padding with the
@@ -117,9 +119,10 @@ def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius
     """
     N = x.shape[0]
     dev = x.device
-    if N == 0:
-        return (torch.zeros((0, 1), dtype=torch.long, device=dev),
-                torch.zeros((0, 1), dtype=torch.bool, device=dev))
+    if N == 0 or (rows is not None and rows.numel() == 0):
+        n = 0 if rows is None else rows.numel()
+        return (torch.zeros((n, 1), dtype=torch.long, device=dev) if rows is None else rows.unsqueeze(1).clone(),
+                torch.zeros((n, 1), dtype=torch.bool, device=dev))
     m = CELLS_PER_RADIUS if cells_per_radius is None else int(cells_per_radius)
     x = domain.wrap(x)
     c, ncell, offsets = _cell_grid(x, radius, domain, m)
@@ -138,7 +141,12 @@ def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius
     # order: a pass reads runs of it
     xcol = [x[:, a].contiguous() for a in range(dim)]
     xscol = [xa.index_select(0, order) for xa in xcol]
-    ar = torch.arange(N, device=dev)
+    if rows is not None:  # the query side: those rows only
+        c = c.index_select(0, rows)
+        xcol = [xa.index_select(0, rows) for xa in xcol]
+    Q = N if rows is None else rows.numel()
+    ar = torch.arange(Q, device=dev)
+    me = ar if rows is None else rows  # the particle of each row
     r2max = radius * radius
     outer = [a for a in range(dim) if a != inner]
     edge = radius / m
@@ -147,7 +155,7 @@ def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius
     # as long as the rest of the radius needs (offsets are true offsets only where the axis
     # is not a short periodic one, which lists each of its cells once)
     trim = all(offsets[a] == list(range(-m, m + 1)) for a in outer)
-    base = torch.zeros(N, dtype=torch.long, device=dev)  # neighbours found so far per row
+    base = torch.zeros(Q, dtype=torch.long, device=dev)  # neighbours found so far per row
     found = []
     for off in itertools.product(*(offsets[a] for a in outer)):
         reach = m
@@ -156,8 +164,8 @@ def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius
             if gap2 >= r2max:
                 continue
             reach = min(m, math.ceil(math.sqrt(r2max - gap2) / edge))
-        valid = torch.ones(N, dtype=torch.bool, device=dev)
-        ncid = torch.zeros(N, dtype=torch.long, device=dev)
+        valid = torch.ones(Q, dtype=torch.bool, device=dev)
+        ncid = torch.zeros(Q, dtype=torch.long, device=dev)
         for a, o in zip(outer, off):
             na = c[:, a] + o
             if domain.periodic[a]:
@@ -187,15 +195,15 @@ def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius
             r2 = da * da if r2 is None else r2.addcmul_(da, da)
         keep = torch.nonzero(r2 < r2max).squeeze(1)
         i, j = i.index_select(0, keep), order.index_select(0, pos.index_select(0, keep))
-        keep = torch.nonzero(i != j).squeeze(1)
+        keep = torch.nonzero((i if rows is None else me.index_select(0, i)) != j).squeeze(1)
         i, j = i.index_select(0, keep), j.index_select(0, keep)
-        kept = torch.bincount(i, minlength=N)
+        kept = torch.bincount(i, minlength=Q)
         rank = torch.arange(i.numel(), device=dev) + (base - (torch.cumsum(kept, 0) - kept)).index_select(0, i)
         found.append((i, rank, j))
         base += kept
     k = max(int(base.max()), 1)
-    nb = ar.unsqueeze(1).repeat(1, k)
-    mask = torch.zeros((N, k), dtype=torch.bool, device=dev)
+    nb = me.unsqueeze(1).repeat(1, k)
+    mask = torch.zeros((Q, k), dtype=torch.bool, device=dev)
     if found:
         i, slot, j = (torch.cat(t) for t in zip(*found))
         flat = i * k + slot
@@ -230,7 +238,20 @@ def brute_force_pairs(x: torch.Tensor, radius: float, domain: Domain):
 class VerletList:
     """Neighbour table of pairs within ``radius + skin``, rebuilt only when some particle has moved more
     than ``skin / 2`` since the last build. Pairs between ``radius`` and
-    ``radius + skin`` are kept: compact kernels are exactly zero there."""
+    ``radius + skin`` are kept: compact kernels are exactly zero there.
+
+    Partial rebuilds (``update(..., rigid=...)``): particles of one rigid body keep their mutual
+    distances, so their mutual pairs are the ones the current table holds; a rebuild searches
+    afresh only the rows of the other particles (melt, other bodies, particles that joined the
+    work since) and hands each body particle the new partners it gained among them. The
+    result holds exactly the pairs a full build would (tests/test_neighbors.py), in another
+    order within rows. The body set (``static``) only shrinks between full builds: a particle
+    leaves it when it leaves the body (melts) or has moved otherwise than the body since the
+    last full build (beyond rounding: 1e-8 skin in float64, 1e-3 skin in float32, far inside the
+    skin's margin); a full build starts it afresh. A full build is made when the searched rows exceed ``partial_limit`` of
+    the working particles, or when particles were added or removed."""
+
+    partial_limit = 0.5
 
     def __init__(self, radius: float, skin: float, domain: Domain):
         self.radius = radius
@@ -239,6 +260,9 @@ class VerletList:
         self.x_ref: torch.Tensor | None = None
         self.nb = self.mask = None
         self.n_builds = 0
+        self.n_partial = 0  # of the builds, partial ones
+        self.static: torch.Tensor | None = None  # rows whose mutual pairs the table holds (one body)
+        self.x_full: torch.Tensor | None = None  # positions at the last full build
 
     def needs_rebuild(self, x: torch.Tensor) -> bool:
         if self.x_ref is None or self.x_ref.shape != x.shape:
@@ -248,20 +272,104 @@ class VerletList:
             return bool((d != 0).any())
         return bool((d * d).sum(-1).max() > (0.5 * self.skin) ** 2)
 
-    def update(self, x: torch.Tensor, force: bool = False, subset=None) -> bool:
+    def update(self, x: torch.Tensor, force: bool = False, subset=None, rigid=None) -> bool:
         """Rebuild if needed; returns True when the pairs changed. ``subset`` (a callable
         returning a mask, evaluated only when rebuilding) restricts the search to those
-        particles: the others get empty rows and appear in no row."""
+        particles: the others get empty rows and appear in no row. ``rigid`` (a callable
+        returning the mask of the particles of one rigid body, evaluated only when
+        rebuilding) allows a partial rebuild (see the class)."""
         if force or self.needs_rebuild(x):
             work = subset() if subset is not None else None
-            if work is None or bool(work.all()):
-                self.nb, self.mask = build_table(x, self.radius + self.skin, self.domain)
-            else:
-                self.nb, self.mask = subset_table(x, work, self.radius + self.skin, self.domain)
+            if work is not None and bool(work.all()):
+                work = None
+            body = rigid() if rigid is not None else None
+            if body is None or not self._partial(x, work, body):
+                if work is None:
+                    self.nb, self.mask = build_table(x, self.radius + self.skin, self.domain)
+                else:
+                    self.nb, self.mask = subset_table(x, work, self.radius + self.skin, self.domain)
+                self.static = self.x_full = None
+                if body is not None:
+                    self.static = body if work is None else body & work
+                    self.x_full = x.clone()
             self.x_ref = x.clone()
             self.n_builds += 1
             return True
         return False
+
+    def _partial(self, x: torch.Tensor, work: torch.Tensor | None, body: torch.Tensor) -> bool:
+        """Rebuild from the current table keeping the body's mutual pairs; False (nothing
+        done) where a full build is due."""
+        N = x.shape[0]
+        if self.static is None or self.static.shape[0] != N or self.nb is None or self.nb.shape[0] != N:
+            return False
+        st = self.static & body
+        if work is not None:
+            st &= work
+        if bool(st.any()):  # moved with the body since the last full build (rounding aside)
+            d = self.domain.minimum_image(x - self.x_full)
+            drift = (d - d[st].median(dim=0).values).abs().amax(1)
+            st &= drift <= self.skin * (1e-3 if x.dtype == torch.float32 else 1e-8)
+        alive = work if work is not None else torch.ones(N, dtype=torch.bool, device=x.device)
+        q = torch.nonzero(alive & ~st).squeeze(1)  # rows searched afresh
+        n_work = int(alive.sum())
+        if q.numel() > self.partial_limit * n_work:
+            return False
+        dev = x.device
+        # the body's mutual pairs stay where the table holds them; every other entry is freed
+        nb = self.nb
+        k = nb.shape[1]
+        col = torch.arange(N, device=dev).unsqueeze(1)
+        keep = self.mask & st.unsqueeze(1) & st.index_select(0, nb.reshape(-1)).view_as(nb)
+        # rows searched afresh, among the working particles
+        if work is None:
+            qnb, qmask = build_table(x, self.radius + self.skin, self.domain, rows=q)
+        else:
+            widx = torch.nonzero(work).squeeze(1)
+            local = torch.full((N,), -1, dtype=torch.long, device=dev)
+            local[widx] = torch.arange(widx.numel(), device=dev)
+            qnb, qmask = build_table(x.index_select(0, widx), self.radius + self.skin, self.domain,
+                                     rows=local.index_select(0, q))
+            qnb = widx.index_select(0, qnb.reshape(-1)).view_as(qnb)
+        # the body rows' new partners: the searched rows' pairs seen from the body side
+        qi = q.unsqueeze(1).expand_as(qnb)[qmask]
+        qj = qnb[qmask]
+        back = torch.nonzero(st.index_select(0, qj)).squeeze(1)
+        ti, tj = qj.index_select(0, back), qi.index_select(0, back)  # row ti gains tj
+        perm = torch.sort(ti, stable=True).indices
+        ti, tj = ti.index_select(0, perm), tj.index_select(0, perm)
+        gain = torch.bincount(ti, minlength=N)
+        grows = torch.nonzero(gain).squeeze(1)
+        # width: the searched rows' longest, and room in every gaining row for its gain
+        short = (gain.index_select(0, grows) - (~keep.index_select(0, grows)).sum(1)).clamp_(min=0)
+        k2 = max(k + (int(short.max()) if grows.numel() else 0), qnb.shape[1])
+        if k2 > k:
+            keep = torch.cat([keep, torch.zeros((N, k2 - k), dtype=torch.bool, device=dev)], 1)
+            nb = torch.cat([nb, col.expand(N, k2 - k)], 1)
+        nb = torch.where(keep, nb, col)
+        mask = keep
+        flat_nb, flat_mask = nb.view(-1), mask.view(-1)
+        if grows.numel():  # gained partners go to the first free slots of their rows
+            free = torch.nonzero(~keep.index_select(0, grows).reshape(-1)).squeeze(1)
+            r = torch.div(free, k2, rounding_mode="floor")
+            per = torch.bincount(r, minlength=grows.numel())
+            rank = torch.arange(free.numel(), device=dev) - (torch.cumsum(per, 0) - per).index_select(0, r)
+            use = torch.nonzero(rank < gain.index_select(0, grows).index_select(0, r)).squeeze(1)
+            slots = grows.index_select(0, r.index_select(0, use)) * k2 + free.index_select(0, use) % k2
+            # slots are in (row, column) order, as the gained partners are (sorted by row)
+            flat_nb.index_copy_(0, slots, tj)
+            flat_mask.index_fill_(0, slots, True)
+        if q.numel():  # the searched rows, as the search laid them out (from the left)
+            flat = torch.nonzero(qmask.reshape(-1)).squeeze(1)
+            w = qmask.shape[1]
+            r = torch.div(flat, w, rounding_mode="floor")
+            slots = q.index_select(0, r) * k2 + flat % w
+            flat_nb.index_copy_(0, slots, qnb.reshape(-1).index_select(0, flat))
+            flat_mask.index_fill_(0, slots, True)
+        self.nb, self.mask = nb, mask
+        self.static = st
+        self.n_partial += 1
+        return True
 
 
 def subset_table(x: torch.Tensor, work: torch.Tensor, radius: float, domain: Domain):

@@ -90,7 +90,7 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
                      phase_change=(cfg["thermal"]["solidus_K"], cfg["thermal"]["liquidus_K"],
                                    cfg["thermal"]["mushy_drag_1_s"]) if phase_change else None,
                      surface=surface, active=active, feeder=scene.info.get("feeder"), escape=scene.info.get("escape"),
-                     cond_reuse=nm["conduction_reuse"], comm=comm)
+                     cond_reuse=nm["conduction_reuse"], comm=comm, partial_rebuild=nm["partial_rebuild"])
     if comm is not None:
         comm.check(sim)
     return scene, sim
@@ -306,7 +306,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         "dt_max_s": stats.dt_max,
         "c0_m_s": sim.fluid.prm.c0 if sim.fluid is not None else None,
         "mach_max": stats.vmax / sim.fluid.prm.c0 if sim.fluid is not None else None,
-        "neighbour_builds": sim.nl.n_builds,
+        "neighbour_builds": sim.nl.n_builds, "neighbour_partial_builds": sim.nl.n_partial,
         "energy": sim.energy_balance(),
         "physics_plan": physics_plan(sim),
         "active_fraction": sim.plan.report(),

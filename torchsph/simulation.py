@@ -112,7 +112,7 @@ class Simulation:
                  damping_time: float = 0.0, thermal: Conduction | None = None,
                  phase_change: tuple[float, float, float] | None = None,
                  surface: SurfaceForces | None = None, active: ActiveSet | None = None,
-                 feeder=None, cond_reuse: float = 0.0, comm=None, escape=None):
+                 feeder=None, cond_reuse: float = 0.0, comm=None, escape=None, partial_rebuild: bool = True):
         """``fluid`` and ``thermal`` are the physics a scene declares; either may be None
         and then costs nothing (a conduction study has no momentum, a flow no energy).
         ``active`` leaves cold quiescent solid out of the work (:mod:`torchsph.active`);
@@ -120,7 +120,9 @@ class Simulation:
         wire); ``escape`` says which particles have left the scene for good
         (``outside(x, t)``, :class:`~torchsph.deposition.EscapeBox`): they are removed at the
         next neighbour rebuild. ``cond_reuse`` = f > 0: multi-rate conduction, see
-        :meth:`_reuse_conduction`."""
+        :meth:`_reuse_conduction`. ``partial_rebuild``: neighbour rebuilds keep the largest rigid
+        body's mutual pairs and search only the other rows (:class:`~torchsph.neighbors.VerletList`;
+        one process, scenes with fluid)."""
         self.state = state
         self.comm = comm if comm is not None else SerialComm()  # decomposition hooks (no-ops in one process)
         self.cond_reuse = cond_reuse
@@ -160,6 +162,7 @@ class Simulation:
         self.dx = dx  # initial particle spacing
         self.damping_time = damping_time  # settling: velocity damping for t < damping_time
         self.nl = VerletList(some.kernel.radius(some.h), skin, domain)
+        self.partial_rebuild = partial_rebuild and self.comm.size == 1 and fluid is not None
         self.t = 0.0
         self.step = 0
         self._stale = False  # the active set must be refreshed at the next rebuild point
@@ -214,10 +217,23 @@ class Simulation:
             force = self.comm.any(self.nl.needs_rebuild(self.state.x))
             if not force:
                 return
-        if self.nl.update(self.state.x, force=force, subset=subset):
+        rigid = self._rigid_body if self.partial_rebuild else None
+        if self.nl.update(self.state.x, force=force, subset=subset, rigid=rigid):
             self._stale = False
             self._rebuilt = True
             self._select()
+
+    def _rigid_body(self) -> torch.Tensor | None:
+        """Mask of the largest rigid group: the solid particles of one body, or the walls
+        (None without either)."""
+        st = self.state
+        solid = (st.phase == Phase.SOLID) & (st.body > 0)
+        group = torch.where(solid, st.body, torch.where(st.phase == Phase.WALL, 0, -1))
+        rigid = group >= 0
+        if not bool(rigid.any()):
+            return None
+        main = int(torch.bincount(group[rigid]).argmax())
+        return group == main
 
     def _work_set(self) -> torch.Tensor:
         """Refresh the active set (at a neighbour rebuild) and return its work mask."""
