@@ -259,7 +259,8 @@ def test_active_set_error_stays_below_its_tolerance():
 
 def test_deposition_restart_is_bit_for_bit(tmp_path):
     """K steps == K/2 + restart + K/2 in float64 on the deposition scene with sources,
-    a wire fed fast enough that layers enter in both halves, and the active set."""
+    a wire fed fast enough that layers enter in both halves, the active set, and partial
+    neighbour rebuilds in both halves."""
     cfg = small("scene.wire_feed_m_s=0.5", "scene.wire_gap_m=2.5e-3")
     K = 24
     ref = _run_pair(cfg, K)
@@ -275,6 +276,8 @@ def test_deposition_restart_is_bit_for_bit(tmp_path):
     b.feeder.load_state_dict(extra["feeder"])
     run_steps(b, steps=K - K // 2)
     assert b.state.n == ref.state.n > a.state.n - 1
+    # partial neighbour rebuilds on both sides of the restart (the checkpoint holds the body set)
+    assert 0 < a.nl.n_partial < b.nl.n_partial
     for f in ("x", "v", "rho", "T", "T_peak"):
         assert torch.equal(getattr(b.state, f), getattr(ref.state, f)), f
     assert torch.equal(b.state.phase, ref.state.phase) and torch.equal(b.state.id, ref.state.id)
