@@ -150,3 +150,30 @@ def test_partial_rebuild_holds_exactly_the_pairs_of_a_full_build(seed, with_work
             assert torch.all(vl.nb[~vl.mask] == torch.arange(N).unsqueeze(1).expand_as(vl.nb)[~vl.mask])
     assert builds >= 10
     assert vl.n_partial >= builds // 2
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([2, 3]), st.floats(0.02, 0.3))
+def test_active_set_dilation_holds_every_particle_within_the_radius(seed, dim, radius):
+    """The active set's dilation (torchsph/active.py): every particle within ``radius`` of a
+    seed is taken in (brute force), none beyond 2 sqrt(3) radius; the dense voxel grid (max-pool)
+    and the sparse voxel keys give the same set."""
+    import torchsph.active as A
+
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(400, dim, generator=g, dtype=torch.float64) * torch.tensor([1.0, 0.7, 0.4][:dim])
+    seed_mask = torch.rand(400, generator=g) < 0.05
+    dense = A.dilate(x, seed_mask, radius)
+    old = A.DENSE_VOXELS
+    try:
+        A.DENSE_VOXELS = 0
+        sparse = A.dilate(x, seed_mask, radius)
+    finally:
+        A.DENSE_VOXELS = old
+    assert torch.equal(dense, sparse)
+    if seed_mask.any():
+        d = torch.cdist(x, x[seed_mask]).min(1).values
+        assert bool(dense[d < radius].all())
+        assert not bool(dense[d > 2 * radius * 3 ** 0.5].any())
+    else:
+        assert not bool(dense.any())

@@ -27,6 +27,9 @@ import math
 import torch
 
 
+DENSE_VOXELS = 1 << 24  # voxel grids up to this size are dilated densely (max-pool)
+
+
 def dilate(x: torch.Tensor, seed: torch.Tensor, radius: float) -> torch.Tensor:
     """Mask of the particles within ``radius`` of a seed particle (voxels of radius / 2:
     it may include some up to 2 radius further). No loop over particles: a loop over the
@@ -45,6 +48,13 @@ def dilate(x: torch.Tensor, seed: torch.Tensor, radius: float) -> torch.Tensor:
         mult[a] = mult[a + 1] * dims[a + 1]
     mult_t = torch.tensor(mult, device=x.device)
     key = (c * mult_t).sum(-1)
+    if x.shape[1] in (2, 3) and math.prod(dims) <= DENSE_VOXELS:
+        # a dense voxel grid: the same cube of offsets as a max-pool of width 2k + 1
+        grid = torch.zeros(math.prod(dims), dtype=torch.float32, device=x.device)
+        grid.index_fill_(0, key[seed], 1.0)
+        pool = torch.nn.functional.max_pool3d if x.shape[1] == 3 else torch.nn.functional.max_pool2d
+        grown = pool(grid.view(1, 1, *dims), 2 * k + 1, stride=1, padding=k).reshape(-1)
+        return grown.index_select(0, key) > 0
     sk = torch.unique(key[seed])
     coords = torch.stack([(sk // m) % dmax for m, dmax in zip(mult, dims)], -1)
     offs = torch.tensor(list(itertools.product(range(-k, k + 1), repeat=x.shape[1])), device=x.device)

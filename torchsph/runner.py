@@ -90,7 +90,7 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
                      phase_change=(cfg["thermal"]["solidus_K"], cfg["thermal"]["liquidus_K"],
                                    cfg["thermal"]["mushy_drag_1_s"]) if phase_change else None,
                      surface=surface, active=active, feeder=scene.info.get("feeder"), escape=scene.info.get("escape"),
-                     cond_reuse=nm["conduction_reuse"], comm=comm, partial_rebuild=nm["partial_rebuild"])
+                     cond_reuse=nm["conduction_reuse"], comm=comm, partial_rebuild=nm.get("partial_rebuild", True))
     if comm is not None:
         comm.check(sim)
     return scene, sim
