@@ -35,15 +35,8 @@ def main():
     ap.add_argument("--restart", type=Path, default=None, metavar="CHECKPOINT")
     a = ap.parse_args()
     if a.restart is not None:
-        import json
-
-        from torchsph import checkpoint as ckpt
-        cfg = json.loads((a.restart.parent / "config.json").read_text())
-        cfg.pop("case", None)
-        _, sim = make_simulation(cfg, compile=a.compile)
-        extra = ckpt.restore(sim, ckpt.load(a.restart), cfg, str(a.restart))
-        if sim.feeder is not None and "feeder" in extra:
-            sim.feeder.load_state_dict(extra["feeder"])
+        from torchsph.runner import simulation_from_run
+        cfg, sim = simulation_from_run(a.restart, compile=a.compile)
     else:
         _, cfg = load_case(a.case, a.overrides)
         _, sim = make_simulation(cfg, compile=a.compile)

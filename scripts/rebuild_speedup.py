@@ -12,7 +12,6 @@ which the melt's dynamics then amplifies over many steps.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -22,18 +21,11 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchsph import checkpoint as ckpt  # noqa: E402
-from torchsph.runner import make_simulation, run_steps  # noqa: E402
+from torchsph.runner import run_steps, simulation_from_run  # noqa: E402
 
 
 def run(run_dir: Path, steps: int, partial: bool):
-    cfg = json.loads((run_dir / "config.json").read_text())
-    cfg["numerics"]["partial_rebuild"] = partial
-    _, sim = make_simulation(cfg)
-    path = run_dir / "checkpoint.pt"
-    extra = ckpt.restore(sim, ckpt.load(path), cfg, str(path))
-    if sim.feeder is not None and "feeder" in extra:
-        sim.feeder.load_state_dict(extra["feeder"])
+    _, sim = simulation_from_run(run_dir / "checkpoint.pt", {"partial_rebuild": partial})
     b0, p0, t0 = sim.nl.n_builds, sim.nl.n_partial, time.perf_counter()
     run_steps(sim, steps=steps)
     wall = time.perf_counter() - t0

@@ -325,12 +325,7 @@ class VerletList:
         if work is None:
             qnb, qmask = build_table(x, self.radius + self.skin, self.domain, rows=q)
         else:
-            widx = torch.nonzero(work).squeeze(1)
-            local = torch.full((N,), -1, dtype=torch.long, device=dev)
-            local[widx] = torch.arange(widx.numel(), device=dev)
-            qnb, qmask = build_table(x.index_select(0, widx), self.radius + self.skin, self.domain,
-                                     rows=local.index_select(0, q))
-            qnb = widx.index_select(0, qnb.reshape(-1)).view_as(qnb)
+            qnb, qmask = subset_table(x, work, self.radius + self.skin, self.domain, rows=q)
         # the body rows' new partners: the searched rows' pairs seen from the body side
         qi = q.unsqueeze(1).expand_as(qnb)[qmask]
         qj = qnb[qmask]
@@ -372,10 +367,17 @@ class VerletList:
         return True
 
 
-def subset_table(x: torch.Tensor, work: torch.Tensor, radius: float, domain: Domain):
+def subset_table(x: torch.Tensor, work: torch.Tensor, radius: float, domain: Domain,
+                 rows: torch.Tensor | None = None):
     """:func:`build_table` over the particles ``work`` only, in the full numbering: rows of
-    the others hold only themselves (mask False)."""
+    the others hold only themselves (mask False). With ``rows`` (indices of working
+    particles), the table of those rows only, as :func:`build_table`'s ``rows``."""
     idx = torch.nonzero(work).squeeze(1)
+    if rows is not None:
+        local = torch.full((x.shape[0],), -1, dtype=torch.long, device=x.device)
+        local[idx] = torch.arange(idx.numel(), device=x.device)
+        nb_w, mask_w = build_table(x.index_select(0, idx), radius, domain, rows=local.index_select(0, rows))
+        return idx.index_select(0, nb_w.reshape(-1)).view_as(nb_w), mask_w
     nb_w, mask_w = build_table(x.index_select(0, idx), radius, domain)
     N, k = x.shape[0], nb_w.shape[1]
     nb = torch.arange(N, device=x.device).unsqueeze(1).repeat(1, k)

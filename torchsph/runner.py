@@ -96,6 +96,34 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
     return scene, sim
 
 
+def resume(sim: Simulation, path, cfg: dict, recorded: dict | None = None) -> dict:
+    """Put a checkpoint into ``sim`` (state, clock, neighbour list, caches) and into the
+    scene's wire feeder and escape box; returns the checkpoint's extras."""
+    from . import checkpoint as ckpt
+
+    extra = ckpt.restore(sim, ckpt.load(path), cfg, str(path), recorded)
+    if sim.feeder is not None and "feeder" in extra:
+        sim.feeder.load_state_dict(extra["feeder"])
+    if sim.escape is not None and "escape" in extra:
+        sim.escape.load_state_dict(extra["escape"])
+    return extra
+
+
+def simulation_from_run(checkpoint: Path, numerics: dict | None = None, compile=None):
+    """(cfg, sim): the simulation a run's checkpoint holds, built from the run's
+    ``config.json`` beside it; ``numerics``: step-control keys to change (e.g.
+    ``{"partial_rebuild": False}``)."""
+    import json
+
+    checkpoint = Path(checkpoint)
+    cfg = json.loads((checkpoint.parent / "config.json").read_text())
+    cfg.pop("case", None)
+    cfg["numerics"].update(numerics or {})
+    _, sim = make_simulation(cfg, compile=compile)
+    resume(sim, checkpoint, cfg)
+    return cfg, sim
+
+
 def physics_plan(sim: Simulation) -> dict:
     """What the scene evaluates, and what it skips (terms it does not declare cost nothing)."""
     plan = {"momentum": sim.fluid_model is not None, "conduction": sim.thermal is not None}
@@ -220,13 +248,9 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     ck_path = out_dir / "checkpoint.pt"
     resumed = None
     if restart is not None:
-        extra = ckpt.restore(sim, ckpt.load(restart), cfg, str(restart), recorded)
+        extra = resume(sim, restart, cfg, recorded)
         sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
         snaps = [tuple(x) for x in extra.get("snaps", [])]
-        if sim.feeder is not None and "feeder" in extra:
-            sim.feeder.load_state_dict(extra["feeder"])
-        if sim.escape is not None and "escape" in extra:
-            sim.escape.load_state_dict(extra["escape"])
         resumed = extra
         for c in extra.get("step_control_changes", []):
             print(f"torchsph: restart from {restart}: {c}", file=sys.stderr, flush=True)
