@@ -314,7 +314,7 @@ class SlabComm:
         self.busy = 0.0
         if max(times) > 0:
             self.imbalance.append(max(times) / (sum(times) / len(times)))
-        arrays, dropped = self._common_arrays(sim)
+        arrays, _ = self._common_arrays(sim)
         old_ids = arrays["state.id"]
         nb_ids = old_ids[sim.nl.nb]  # neighbour table in particle ids
         nb_mask = sim.nl.mask
@@ -345,15 +345,7 @@ class SlabComm:
         sim.nl.nb = torch.where(mask, nb, own_row).contiguous()
         sim.nl.mask = mask
         del new["_nb"], new["_mask"]
-        sim.set_particle_arrays(new)
-        self._clear(sim, dropped)
-        caches = {k_: v for k_, v in new.items() if k_.startswith(("th.", "sf."))}
-        sim._select()
-        sim.set_particle_arrays(caches)  # _select reset the per-rebuild caches: restore them
-        if sim.fluid is not None:  # the pair geometry the next continuity sum reuses
-            saved = sim.dvdt
-            sim.fluid.momentum(sim.state, sim.state.v)
-            sim.dvdt = saved
+        sim.rearm(new)  # caches some ranks lacked (dropped) are rebuilt whole everywhere
 
     # --- gathering ----------------------------------------------------------------------------
     def _common_arrays(self, sim):
@@ -362,15 +354,6 @@ class SlabComm:
         arrays = sim.particle_arrays()
         common = set.intersection(*self.c.allgather(set(arrays)))
         return {k: v for k, v in arrays.items() if k in common}, [k for k in arrays if k not in common]
-
-    @staticmethod
-    def _clear(sim, names):
-        """Caches some ranks lacked: dropped everywhere, each rank rebuilds them whole."""
-        for k in names:
-            owner, name = k.split(".", 1)
-            obj = {"th": sim.thermal, "sf": sim.surface_model}.get(owner)
-            if obj is not None:
-                setattr(obj, name, None)
 
     def gather_owned(self, sim, names=None) -> dict[str, np.ndarray] | None:
         """Rank 0: the owned rows of all ranks' per-particle arrays, in particle-id order

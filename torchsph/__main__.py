@@ -8,7 +8,7 @@ from pathlib import Path
 
 from .checkpoint import CheckpointError
 from .config import CaseError, load_case
-from .simulation import SimulationError
+from .simulation import SimulationError, UnstableStepError
 
 
 def parse_args(argv=None):
@@ -35,6 +35,9 @@ def parse_args(argv=None):
                     help="write OUT/checkpoint.pt every N steps (always at the end and on Ctrl-C)")
     ap.add_argument("--restart", type=Path, default=None, metavar="CHECKPOINT",
                     help="continue a run from its checkpoint (same case; [run] may differ)")
+    ap.add_argument("--estimate", action="store_true",
+                    help="print what the run costs (particles, memory, steps, disk, and the wall time "
+                         "projected from a probe of its first steps) and exit; writes nothing")
     return ap.parse_args(argv)
 
 
@@ -67,11 +70,21 @@ def _global_checkpoint(path) -> bool:
     """A checkpoint written by an MPI run (it restarts on any number of ranks, one included)."""
     if path is None or not Path(path).exists():
         return False
-    import torch
+    from .checkpoint import read
+    return read(path).get("format") == "global-1"
+
+
+def check_out(out: Path, what: str):
+    """The output folder exists (made if need be) and is writable; else a one-line CaseError."""
+    if out.exists() and not out.is_dir():
+        raise CaseError(f"{what} {out}: is a file, not a folder (give a folder for the run's output)")
     try:
-        return torch.load(path, map_location="cpu", weights_only=False).get("format") == "global-1"
-    except Exception:  # noqa: BLE001 - the serial restore reports unreadable files
-        return False
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".torchsph-write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise CaseError(f"{what} {out}: cannot write there ({e.strerror or e}); give a writable folder") from None
 
 
 def main(argv=None) -> int:
@@ -85,11 +98,14 @@ def main(argv=None) -> int:
                      + (["numerics.skip_cold_solid=false", "numerics.conduction_reuse=0"] if args.no_skip else []))
         path, cfg = load_case(args.case, overrides, preview=args.preview)
         out = args.out if args.out is not None else path.parent / ("output_preview" if args.preview else "output")
+        if not args.estimate:
+            check_out(out, "--out" if args.out is not None else "the output folder")
         from .runner import run_case
         if args.checkpoint_every is not None and args.checkpoint_every <= 0:
             raise CaseError(f"--checkpoint-every {args.checkpoint_every}: must be > 0")
         kw = dict(t_end=args.t_end, steps=args.steps, device=args.device, dtype=args.dtype,
-                  progress=not args.quiet, checkpoint_every=args.checkpoint_every, restart=args.restart)
+                  progress=not args.quiet, checkpoint_every=args.checkpoint_every, restart=args.restart,
+                  estimate=args.estimate)
         if mpi_size() > 1 or _global_checkpoint(args.restart):
             from parallel.run import run_case_mpi  # launched by mpirun / mpiexec
             s = run_case_mpi(cfg, path, out, **kw)
@@ -97,7 +113,12 @@ def main(argv=None) -> int:
                 return 0
         else:
             s = run_case(cfg, path, out, **kw)
+        if args.estimate:
+            return 0
     except (CaseError, CheckpointError) as e:
+        print(f"torchsph: error: {e}", file=sys.stderr)
+        return _abort_others(2)
+    except UnstableStepError as e:  # a refused numerics.dt_s is bad input, not a blow-up
         print(f"torchsph: error: {e}", file=sys.stderr)
         return _abort_others(2)
     except SimulationError as e:

@@ -12,6 +12,7 @@ previous checkpoint intact.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import time
@@ -51,8 +52,10 @@ def _defaults(section: str, cfg: dict) -> dict:
         schema = spec.schema if spec is not None else {}
     else:
         schema = {"fluid": C.FLUID, "thermal": C.THERMAL, "surface": C.SURFACE, "numerics": C.NUMERICS}.get(section, {})
-    return json.loads(json.dumps({k: key.default for k, key in schema.items()
-                                  if key.default is not C._REQUIRED}, default=str))
+    dflt = {k: key.default for k, key in schema.items() if key.default is not C._REQUIRED}
+    if section == "numerics" and cfg.get("scene", {}).get("type") in SCENES:  # the scene's verified numerics
+        dflt.update(SCENES[cfg["scene"]["type"]].numerics)
+    return json.loads(json.dumps(dflt, default=str))
 
 
 # Keys that say how the steps are taken, not what is simulated: a restart may change them
@@ -152,7 +155,9 @@ def snapshot(sim) -> dict:
         d["thermal"] = {"T_set": _cpu(th.T_set), "zeta": _cpu(th._zeta), "area": _cpu(th._area),
                         "normal": _cpu(getattr(th, "normal", None)), "lit": _cpu(getattr(th, "lit", None)),
                         "q_cond": _cpu(th.q_cond), "t_cond": th.t_cond,
-                        "zeta_ok": _cpu(th._zeta_ok), "area_ok": _cpu(th._area_ok)}
+                        "zeta_ok": _cpu(th._zeta_ok), "area_ok": _cpu(th._area_ok),
+                        "zeta_prev": _cpu(th._zeta_prev), "area_prev": _cpu(th._area_prev),
+                        "normal_prev": _cpu(th._normal_prev)}
     sf = sim.surface_model
     if sf is not None:
         d["surface"] = {"normal": _cpu(sf.normal), "kappa": _cpu(sf.kappa)}
@@ -161,15 +166,27 @@ def snapshot(sim) -> dict:
 
 def save(sim, path: str | Path, cfg_hash: str, extra: dict | None = None, phys: dict | None = None):
     """Write a checkpoint atomically (temp file, fsync, rename)."""
-    path = Path(path)
     d = snapshot(sim)
     d["config_hash"] = cfg_hash
     d["physics"] = phys
     d["written"] = time.time()
     d["extra"] = extra or {}
+    write(d, path)
+
+
+ENVELOPE = "torchsph-checkpoint"  # the file: {ENVELOPE: 1, "sha256": digest of "data", "data": torch.save bytes}
+
+
+def write(d: dict, path: str | Path):
+    """Write a checkpoint dict atomically: serialised with its SHA-256, to ``NAME.tmp``,
+    fsynced, renamed over ``NAME``; a damaged file is then told apart from a good one."""
+    path = Path(path)
+    buf = io.BytesIO()
+    torch.save(d, buf)
+    data = buf.getvalue()
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
-        torch.save(d, f)
+        torch.save({ENVELOPE: 1, "sha256": hashlib.sha256(data).hexdigest(), "data": data}, f)
         f.flush()
         os.fsync(f.fileno())
         delay = float(os.environ.get("TORCHSPH_CHECKPOINT_TEST_DELAY_S", "0"))  # tests kill mid-write
@@ -178,15 +195,36 @@ def save(sim, path: str | Path, cfg_hash: str, extra: dict | None = None, phys: 
     os.replace(tmp, path)
 
 
-def load(path: str | Path) -> dict:
+def read(path: str | Path) -> dict:
+    """A checkpoint file's dict (any format: the caller checks ``format``); a missing,
+    unreadable or damaged file raises :class:`CheckpointError` in one line."""
     path = Path(path)
     if not path.exists():
         raise CheckpointError(f"--restart {path}: no such checkpoint")
+    if path.is_dir():
+        raise CheckpointError(f"--restart {path}: is a folder (give OUT/checkpoint.pt)")
     try:
         d = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:  # a truncated or foreign file
-        raise CheckpointError(f"--restart {path}: not a readable torchsph checkpoint ({e})") from None
-    if not isinstance(d, dict) or d.get("format") != FORMAT:
+    except Exception as e:  # noqa: BLE001 - a truncated, damaged or foreign file
+        raise CheckpointError(f"--restart {path}: not a readable torchsph checkpoint "
+                              f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
+    if isinstance(d, dict) and ENVELOPE in d:
+        data = d.get("data")
+        if not isinstance(data, bytes) or hashlib.sha256(data).hexdigest() != d.get("sha256"):
+            raise CheckpointError(f"--restart {path}: damaged (its checksum does not match); use an "
+                                  "earlier checkpoint or start the run again")
+        try:
+            d = torch.load(io.BytesIO(data), map_location="cpu", weights_only=False)
+        except Exception as e:  # noqa: BLE001
+            raise CheckpointError(f"--restart {path}: not a readable torchsph checkpoint ({type(e).__name__})") from None
+    if not isinstance(d, dict):
+        raise CheckpointError(f"--restart {path}: not a torchsph checkpoint")
+    return d
+
+
+def load(path: str | Path) -> dict:
+    d = read(path)
+    if d.get("format") != FORMAT:
         raise CheckpointError(f"--restart {path}: not a torchsph checkpoint of format {FORMAT}")
     return d
 
@@ -227,34 +265,29 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
         th.k = torch.full((sim.state.n,), th.prm.conductivity, dtype=dt, device=dev)
     if "plan" in d:
         sim.plan.steps, sim.plan.sums = d["plan"]["steps"], d["plan"]["sums"]
-    sim._select()  # pair subsets: a function of the neighbour table and the phases
     sim.dvdt, sim.drhodt, sim.dTdt = to(d["dvdt"]), to(d["drhodt"]), to(d["dTdt"])
     sim.energy = {k: to(v) for k, v in d["energy"].items()}
     if d.get("heat"):
         sim._heat = {k: to(v) for k, v in d["heat"].items()}
     if d.get("E0") is not None:
         sim._E0 = d["E0"]
+    caches = {}
     if th is not None and "thermal" in d:
         c = d["thermal"]
-        if c.get("lit") is not None:
-            th.lit = to(c["lit"])
-        th.q_cond, th.t_cond = to(c.get("q_cond")), c.get("t_cond")
-        th.T_set = to(c["T_set"])
-        th._zeta, th._area = to(c["zeta"]), to(c["area"])
-        th._zeta_ok, th._area_ok = to(c.get("zeta_ok")), to(c.get("area_ok"))  # older: None
-        if c["normal"] is not None:
-            th.normal = to(c["normal"])
+        th.t_cond = c.get("t_cond")
+        names = {"lit": "lit", "q_cond": "q_cond", "T_set": "T_set", "zeta": "_zeta", "area": "_area",
+                 "zeta_ok": "_zeta_ok", "area_ok": "_area_ok", "normal": "normal", "zeta_prev": "_zeta_prev",
+                 "area_prev": "_area_prev", "normal_prev": "_normal_prev"}
+        caches.update({f"th.{a}": to(c[k]) for k, a in names.items() if c.get(k) is not None})
     sf = sim.surface_model
     if sf is not None and "surface" in d:
-        sf.normal, sf.kappa = to(d["surface"]["normal"]), to(d["surface"]["kappa"])
-    if sim.fluid is not None:  # the pair geometry that the next continuity sum reuses
-        saved = sim.dvdt
-        sim.fluid.momentum(sim.state, sim.state.v)  # sets p and the cached geometry only
-        sim.dvdt = saved
+        caches.update({f"sf.{k}": to(v) for k, v in d["surface"].items() if v is not None})
+    # pair subsets anew (a function of the table and the phases), the caches as they were
+    sim.rearm(caches)
     torch.set_rng_state(d["rng"])
     sim.info = sim._measure()
     return {**d.get("extra", {}), "step_control_changes": changes}
 
 
 __all__ = ["STEP_CONTROL", "CheckpointError", "check_case", "config_hash", "differences", "load", "physics",
-           "recorded_physics", "restore", "save"]
+           "read", "recorded_physics", "restore", "save", "write"]

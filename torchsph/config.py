@@ -277,7 +277,8 @@ def validate(raw: dict) -> dict:
               **spec.schema}
     cfg = {"scene": validate_section("scene", scene_raw, schema, dim),
            "fluid": validate_section("fluid", raw["fluid"], FLUID, dim),
-           "numerics": validate_section("numerics", raw.get("numerics", {}), NUMERICS, dim),
+           "numerics": validate_section("numerics", _with_defaults(raw.get("numerics", {}), spec.numerics),
+                                        NUMERICS, dim),
            "run": validate_section("run", raw["run"], RUN, dim)}
     if spec.has_fluid:
         for key in ("c0_m_s", "viscosity_Pa_s"):
@@ -342,6 +343,11 @@ def validate(raw: dict) -> dict:
     return cfg
 
 
+def _with_defaults(section, defaults: dict):
+    """A case's table over a scene's own defaults (a malformed table is left to the validator)."""
+    return {**defaults, **section} if isinstance(section, dict) else section
+
+
 def preview_overrides(raw: dict) -> list[str]:
     """The case's ``[preview]`` table ("section.key" = value) as --set overrides."""
     pv = raw.get("preview")
@@ -376,7 +382,23 @@ def load_case(case_dir: str | Path, overrides: list[str] | None = None,
     path, raw = load_raw(case_dir)
     try:
         if preview:
-            overrides = preview_overrides(raw) + list(overrides or [])
-        return path, validate(apply_overrides(raw, overrides))
+            raw = apply_overrides(raw, preview_overrides(raw))
+        if not overrides:
+            return path, validate(raw)
+        validate(raw)  # the file (with its [preview]) alone: its errors name the file
     except CaseError as e:
         raise CaseError(f"{path}: {e}") from None
+    try:
+        return path, validate(apply_overrides(raw, overrides))
+    except CaseError as e:  # the file was valid: the command line's values are wrong
+        msg = str(e)
+        if msg.startswith("--set"):
+            raise
+        named = [o for o in overrides if "=" in o and _names_key(msg, o.split("=", 1)[0])]
+        raise CaseError(f"--set {' '.join(named or overrides)}: {msg}") from None
+
+
+def _names_key(msg: str, dotted: str) -> bool:
+    """Whether an error message is about the override ``section.key``."""
+    sec, _, key = dotted.strip().partition(".")
+    return bool(key) and key in msg and sec in msg

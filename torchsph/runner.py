@@ -18,6 +18,7 @@ from .thermal import Conduction, SurfaceLosses, ThermalParams
 from .active import ActiveSet
 from .simulation import Simulation
 from .surface import SurfaceForces, SurfaceParams
+from .progress import Progress, projection_lines
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
@@ -208,19 +209,104 @@ def run_interruptible(sim: Simulation, flag: list, bar, **kw):
         bar.close()
 
 
+def expected_dt(sim: Simulation) -> tuple[float, str]:
+    """The step the run is expected to take once under way: the time-step limits at the
+    current state, and where the scene has a fluid model (melt to come) the acoustic,
+    viscous and capillary limits of the melt at rest, with 10 % Mach for the flow."""
+    lim = dict(sim.limits())
+    fm = sim.fluid_model
+    if fm is not None and sim.dt_fixed is None:
+        prm, h = fm.prm, sim.h
+        lim.setdefault("acoustic", sim.cfl * h / (1.1 * prm.c0))
+        if prm.eta > 0:
+            lim.setdefault("viscous", 0.125 * h * h * prm.rho0 / prm.eta)
+        sf = sim.surface_model
+        if sf is not None and sf.prm.tension > 0:
+            lim.setdefault("capillary", 0.25 * math.sqrt(prm.rho0 * h**3 / (2 * math.pi * sf.prm.tension)))
+    if sim.dt_fixed is not None:
+        return sim.dt_fixed, "fixed"
+    name = min(lim, key=lim.get)
+    return lim[name], name + " limit" + ("" if name in sim.limits() else ", once melt flows")
+
+
+def peak_rss_gb() -> float | None:
+    try:
+        import resource
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0**2  # KiB on Linux
+    except (ImportError, OSError):
+        return None
+
+
+class SerialRun:
+    """What the run loop needs of its processes, for one process (``parallel.run.SlabRun``
+    is the MPI one): build, restore, checkpoint, the whole state for output, counts."""
+
+    ranks = 1
+    root = True
+
+    def make(self, cfg):
+        return make_simulation(cfg)
+
+    def recorded(self, restart):
+        from . import checkpoint as ckpt
+        return ckpt.recorded_physics(restart) if restart is not None else None
+
+    def restore(self, sim, path, cfg, recorded) -> dict:
+        return resume(sim, path, cfg, recorded)
+
+    def save(self, sim, path, chash, extra, phys):
+        from . import checkpoint as ckpt
+        extra = {**extra, **({"feeder": sim.feeder.state_dict()} if sim.feeder else {}),
+                 **({"escape": sim.escape.state_dict()} if sim.escape else {})}
+        ckpt.save(sim, path, chash, phys=phys, extra=extra)
+
+    def state(self, sim):
+        """The whole state, in any row order (on the root; None elsewhere)."""
+        return sim.state
+
+    def deposit_counts(self, sim):
+        """(welded kg, escaped kg) over processes, or (None, None): the feeder's own."""
+        return None, None
+
+    def counts(self, sim) -> tuple[int, int]:
+        """(all particles, integrated particles) over processes."""
+        return sim.state.n, sim.plan.n_active
+
+    def any(self, flag: bool) -> bool:
+        return flag
+
+    def bcast(self, value):
+        return value
+
+    def summary(self, sim) -> dict:
+        return {"n_fluid": sim.n_fluid, "n_pairs": sim.n_pairs,
+                "neighbour_partial_builds": sim.nl.n_partial,
+                "active_fraction": sim.plan.report(),
+                "active_set_refreshes": sim.active_set.n_refresh if sim.active_set is not None else None,
+                "peak_temperature_K": float(sim.state.T_peak.max()) if sim.thermal is not None else None,
+                "escaped": sim.escape.state_dict() if sim.escape is not None else None}
+
+
 def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, device=None,
              dtype=None, progress=True, checkpoint_every: int | None = None,
-             restart: Path | None = None) -> dict:
-    """Run a case with snapshots every output interval; returns the summary dict.
+             restart: Path | None = None, procs=None, estimate: bool = False) -> dict | None:
+    """Run a case with snapshots every output interval; returns the summary dict (on the
+    root process; None on the others).
 
-    Checkpoints (``out_dir/checkpoint.pt``, atomic) are written every ``checkpoint_every``
-    steps, at the end, and when the run is interrupted (SIGINT/Ctrl-C: the step in
-    progress is finished first, then the checkpoint is written and KeyboardInterrupt
-    raised). ``restart`` continues from a checkpoint of the same case; ``steps`` then
-    counts the steps still to run, ``t_end`` stays the end time."""
+    ``procs``: the processes (:class:`SerialRun`, or ``parallel.run.SlabRun`` under MPI);
+    the loop is the same. Before stepping, the cost is printed (particles, memory, steps
+    to the end, snapshot disk) and, after a short probe of the run's own first steps, the
+    projected wall time; ``estimate`` stops there (nothing written). Checkpoints
+    (``out_dir/checkpoint.pt``, atomic) are written every ``checkpoint_every`` steps, at the
+    end, and when the run is interrupted (SIGINT/Ctrl-C: the step in progress is finished,
+    the checkpoint and ``summary.json`` written, then KeyboardInterrupt raised).
+    ``restart`` continues from a checkpoint of the same case; ``steps`` then counts the
+    steps still to run, ``t_end`` stays the end time; the bar and the wall time go on
+    from the checkpoint's."""
     from . import checkpoint as ckpt
-    from tqdm import tqdm
 
+    procs = procs if procs is not None else SerialRun()
+    root = procs.root
     run = cfg["run"]
     if device is not None:
         run["device"] = device
@@ -231,12 +317,13 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     if run["device"] == "cuda" and not torch.cuda.is_available():
         from .config import CaseError
         raise CaseError("[run] device = \"cuda\": no CUDA device is available here (use cpu)")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    recorded = ckpt.recorded_physics(restart) if restart is not None else None
-    if restart is None:  # a restart writes it once the checkpoint is accepted
-        sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
+    recorded = procs.recorded(restart)  # read before config.json is overwritten
+    if root and not estimate:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if restart is None:  # a restart writes it once the checkpoint is accepted
+            sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
     t_setup = time.perf_counter()
-    scene, sim = make_simulation(cfg)
+    scene, sim = procs.make(cfg)
     setup_s = time.perf_counter() - t_setup
     interval = run["output_interval_s"]
     if interval is None:
@@ -246,102 +333,151 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     fdt = sim.state.x.detach().cpu().numpy().dtype
     chash = ckpt.config_hash(cfg)
     ck_path = out_dir / "checkpoint.pt"
-    resumed = None
+    resumed = {}
     if restart is not None:
-        extra = resume(sim, restart, cfg, recorded)
-        sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
-        snaps = [tuple(x) for x in extra.get("snaps", [])]
-        resumed = extra
-        for c in extra.get("step_control_changes", []):
-            print(f"torchsph: restart from {restart}: {c}", file=sys.stderr, flush=True)
-
-    deposit = list(resumed.get("deposit", [])) if resumed else []  # deposition measures at each snapshot
+        resumed = procs.restore(sim, restart, cfg, recorded)
+        if root and not estimate:
+            sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
+            for c in resumed.get("step_control_changes", []):
+                print(f"torchsph: restart from {restart}: {c}", file=sys.stderr, flush=True)
+        snaps = [tuple(x) for x in resumed.get("snaps", [])]
+    deposit = list(resumed.get("deposit", []))  # deposition measures at each snapshot
+    wall_before = float(resumed.get("wall_s", 0.0))  # the earlier legs' wall time
 
     def snapshot():
+        welded, escaped = procs.deposit_counts(sim)
+        st = procs.state(sim)
+        if not root:
+            return
         if "feeder" in scene.info:
             from .deposition import measure
             sc = cfg["scene"]
-            deposit.append(measure(sim.state, scene.info, sim.t, sc["substrate_velocity_m_s"][0],
-                                   sc["wire_feed_m_s"], cfg["fluid"]["rho0_kg_m3"],
-                                   cfg["thermal"]["liquidus_K"], scene.dx))
+            deposit.append(measure(st, scene.info, sim.t, sc["substrate_velocity_m_s"][0], sc["wire_feed_m_s"],
+                                   cfg["fluid"]["rho0_kg_m3"], cfg["thermal"]["liquidus_K"], scene.dx,
+                                   welded_kg=welded, escaped_kg=escaped))
             sio.write_json(out_dir / "deposit.json", deposit)
         name = f"snap_{len(snaps):05d}.h5"
-        sio.write_snapshot(out_dir / name, sim.state, sim.t, sim.step)
-        snaps.append((sim.t, name, sim.state.n))
+        sio.write_snapshot(out_dir / name, st, sim.t, sim.step)
+        snaps.append((sim.t, name, st.n))
         sio.write_xdmf(out_dir / "particles.xdmf", snaps, fdt)
 
-    if resumed is None:
+    next_out = [resumed.get("next_out", interval)]
+    if restart is None and not estimate:
         snapshot()
-        next_out = [interval]
+    # the cost, before stepping
+    n_all, n_act = procs.counts(sim)
+    dt_exp, dt_why = expected_dt(sim)
+    if steps is not None:
+        steps_left = float(steps)
     else:
-        next_out = [resumed.get("next_out", interval)]
+        steps_left = max(t_end - sim.t, 0.0) / dt_exp
+    n_snap = (int(steps_left // every_steps) if every_steps else
+              int(max((t_end or sim.t) - sim.t, 0.0) / interval) if math.isfinite(interval) else 0) + 1
+    snap_bytes = n_all * sum(a.nbytes for a in sio.snapshot_arrays(sim.state).values()) / max(sim.state.n, 1)
+    cost = dict(n_all=n_all, n_active=n_act, rss_gb=peak_rss_gb(), ranks=procs.ranks, steps_left=steps_left,
+                dt_s=dt_exp, dt_why=dt_why, snapshots=n_snap, snapshot_bytes=snap_bytes)
+    if root and (progress or estimate):
+        for line in projection_lines(**cost, probe=None):
+            print(line, file=sys.stderr, flush=True)
+
     stats = RunStats()
     interrupted = [False]
 
     def write_checkpoint():
-        ckpt.save(sim, ck_path, chash, phys=ckpt.physics(cfg), extra={"snaps": snaps, "next_out": next_out[0], "deposit": deposit,
-                                        **({"feeder": sim.feeder.state_dict()} if sim.feeder else {}),
-                                        **({"escape": sim.escape.state_dict()} if sim.escape else {})})
-    bar = tqdm(total=steps if steps is not None else t_end, disable=not progress,
-               unit="step" if steps is not None else "s", dynamic_ncols=True, mininterval=0.5,
-               bar_format="{l_bar}{bar}| {n:.4g}/{total:.4g} [{elapsed}<{remaining}{postfix}]")
-    t0 = time.perf_counter()
+        procs.save(sim, ck_path, chash, {"snaps": snaps, "next_out": next_out[0], "deposit": deposit,
+                                         "wall_s": wall_before + time.perf_counter() - t0}, ckpt.physics(cfg))
 
-    psteps = [0]  # particle-steps done (the count may grow: a fed wire)
+    by_steps = steps is not None
+    bar = Progress(total=steps if by_steps else t_end, start=0 if by_steps else sim.t, by_steps=by_steps,
+                   enabled=progress and root and not estimate)
+    step0 = sim.step
+    probe = {"steps": 0 if not estimate else None, "wall": 0.0, "shown": estimate}
+    PROBE_STEPS, PROBE_WALL = 20, 30.0
 
     def callback(sim, info):
-        psteps[0] += sim.state.n
-        bar.update(1 if steps is not None else info.dt)
-        if sim.step % 20 == 0:
-            el = time.perf_counter() - t0
-            bar.set_postfix_str(f"step {sim.step} t={sim.t:.4g}s dt={info.dt:.3g}({info.limit}) "
-                                f"N={sim.state.n} {psteps[0] / max(el, 1e-9):.3g} p-steps/s", refresh=False)
+        done = sim.step - step0
+        counts = procs.counts(sim) if done % 20 == 0 or done == 1 else None
+        if counts is not None:
+            callback.counts = counts
+        bar.update(done if by_steps else sim.t, *callback.counts, text=(
+            f"step {sim.step} t={sim.t:.4g}s dt={info.dt:.3g}({info.limit}) N={callback.counts[0]}"),
+            refresh_text=counts is not None)
+        if not probe["shown"] and (done >= PROBE_STEPS or time.perf_counter() - t0 >= PROBE_WALL):
+            probe["shown"] = True
+            if root and progress:
+                bar.bar.clear()
+                for line in projection_lines(**cost, probe=(done, time.perf_counter() - t0))[2:]:
+                    print(line, file=sys.stderr, flush=True)
+        if estimate:
+            if done >= PROBE_STEPS or time.perf_counter() - t0 >= PROBE_WALL:
+                raise _ProbeDone(done)
+            return
         if snapshot_due(sim, every_steps, next_out, interval):
             snapshot()
         if checkpoint_every and sim.step % checkpoint_every == 0:
             write_checkpoint()
-        if interrupted[0]:
+        if procs.any(interrupted[0]):
             write_checkpoint()
             raise KeyboardInterrupt(f"interrupted at step {sim.step}; checkpoint {ck_path}")
 
-    run_interruptible(sim, interrupted, bar, t_end=t_end, steps=steps, callback=callback, stats=stats)
+    callback.counts = (n_all, n_act)
+    t0 = time.perf_counter()
+    try:
+        run_interruptible(sim, interrupted, bar, t_end=t_end, steps=steps, callback=callback, stats=stats)
+    except _ProbeDone as e:
+        wall = time.perf_counter() - t0
+        if root:
+            for line in projection_lines(**cost, probe=(e.steps, wall))[2:]:
+                print(line, file=sys.stderr, flush=True)
+        return {"estimate": cost, "probe_steps": e.steps, "probe_wall_s": wall,
+                "projected_wall_s": wall / max(e.steps, 1) * steps_left} if root else None
+    except KeyboardInterrupt:
+        _finish(procs, sim, cfg, case_path, out_dir, stats, snaps, setup_s, t0, wall_before, bar, step0,
+                restart, resumed, interrupted=True)
+        raise
     write_checkpoint()
+    if procs.bcast(bool(snaps and snaps[-1][0] != sim.t) if root else None):
+        snapshot()  # collective under MPI: every process gathers
+    return _finish(procs, sim, cfg, case_path, out_dir, stats, snaps, setup_s, t0, wall_before, bar, step0,
+                   restart, resumed, interrupted=False)
+
+
+class _ProbeDone(Exception):
+    """``--estimate``: the probe steps are done."""
+
+    def __init__(self, steps: int):
+        super().__init__(f"probe of {steps} steps done")
+        self.steps = steps
+
+
+def _finish(procs, sim, cfg, case_path, out_dir, stats, snaps, setup_s, t0, wall_before, bar, step0,
+            restart, resumed, interrupted: bool) -> dict | None:
+    """summary.json (at the end and on SIGINT): every process takes part in its sums."""
     wall = time.perf_counter() - t0
-    if snaps[-1][0] != sim.t:
-        snapshot()
+    energy = sim.energy_balance()
+    extra = procs.summary(sim)
+    n_all, _ = procs.counts(sim)
+    if not procs.root:
+        return None
     binding = stats.limits.most_common(1)[0][0] if stats.limits else sim.choose_dt()[1]
     if binding == "fixed":
         binding = f"fixed ({sim.binding_limit()[0]} limit binds)"
+    fm = sim.fluid_model
     summary = {
-        "case": str(case_path),
-        "n_particles": sim.state.n,
-        "n_fluid": sim.n_fluid,
-        "n_pairs": sim.n_pairs,
-        "steps": sim.step,
-        "t_final_s": sim.t,
-        "wall_s": wall,
-        "setup_s": setup_s,
-        "particle_steps_per_s": psteps[0] / wall if wall > 0 else None,
-        "device": str(sim.state.device),
-        "dtype": str(sim.state.dtype).replace("torch.", ""),
-        "dt_binding_limit": binding,
-        "dt_limit_counts": dict(stats.limits),
-        "dt_min_s": stats.dt_min if stats.dt_min < math.inf else None,
-        "dt_max_s": stats.dt_max,
-        "c0_m_s": sim.fluid.prm.c0 if sim.fluid is not None else None,
-        "mach_max": stats.vmax / sim.fluid.prm.c0 if sim.fluid is not None else None,
-        "neighbour_builds": sim.nl.n_builds, "neighbour_partial_builds": sim.nl.n_partial,
-        "energy": sim.energy_balance(),
-        "physics_plan": physics_plan(sim),
-        "active_fraction": sim.plan.report(),
-        "active_set_refreshes": sim.active_set.n_refresh if sim.active_set is not None else None,
-        "peak_temperature_K": float(sim.state.T_peak.max()) if sim.thermal is not None else None,
-        "snapshots": len(snaps),
-        "torch": torch.__version__,
-        # particles removed as they left the scene (spatter): count and mass
-        "escaped": sim.escape.state_dict() if sim.escape is not None else None,
+        "case": str(case_path), "ranks": procs.ranks, "n_particles": n_all, "steps": sim.step,
+        "steps_last_leg": sim.step - step0, "t_final_s": sim.t, "interrupted": interrupted,
+        "wall_s": wall_before + wall, "wall_last_leg_s": wall, "setup_s": setup_s,
+        "particle_steps_per_s": bar.psteps_all / wall if wall > 0 else None,
+        "active_particle_steps_per_s": bar.psteps_active / wall if wall > 0 else None,
+        "device": str(sim.state.device), "dtype": str(sim.state.dtype).replace("torch.", ""),
+        "dt_binding_limit": binding, "dt_limit_counts": dict(stats.limits),
+        "dt_min_s": stats.dt_min if stats.dt_min < math.inf else None, "dt_max_s": stats.dt_max,
+        "c0_m_s": fm.prm.c0 if fm is not None and sim.n_fluid > 0 else None,
+        "mach_max": stats.vmax / fm.prm.c0 if fm is not None and (sim.n_fluid > 0 or stats.vmax > 0) else None,
+        "neighbour_builds": sim.nl.n_builds, "energy": energy, "physics_plan": physics_plan(sim),
+        "snapshots": len(snaps), "torch": torch.__version__, **extra,
     }
-    if resumed is not None:
+    if restart is not None:
         summary["restart_step_control_changes"] = resumed.get("step_control_changes", [])
     sio.write_json(out_dir / "summary.json", summary)
     return summary

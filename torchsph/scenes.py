@@ -34,6 +34,8 @@ class SceneSpec:
     doc: str = ""
     has_fluid: bool = True
     needs_thermal: bool = False
+    # the [numerics] the scene's verification measured: a case that names no numerics gets these
+    numerics: dict = field(default_factory=dict)
 
 
 def lattice(counts, dx, origin=None, dtype=torch.float64, device="cpu"):
@@ -346,7 +348,8 @@ SCENES: dict[str, SceneSpec] = {
         {"length_m": Key("float", default=1.0, gt=0, doc="side of the periodic box"),
          "nx": Key("int", gt=0, doc="particles per side"),
          "U_m_s": Key("float", default=1.0, gt=0, doc="velocity amplitude")},
-        (2,), build_taylor_green, check_taylor_green, "2-D Taylor-Green vortex, periodic box"),
+        (2,), build_taylor_green, check_taylor_green, "2-D Taylor-Green vortex, periodic box",
+        numerics={"density_diffusion": 0.1, "shifting": 1.0}),  # verified: 0.8 % at Re 100, 50^2
     "poiseuille": SceneSpec(
         {"height_m": Key("float", gt=0, doc="channel height"),
          "length_m": Key("float", gt=0, doc="periodic channel length"),
@@ -431,7 +434,8 @@ SCENES: dict[str, SceneSpec] = {
         (3,), lambda cfg, dtype, device: _deposition().build(cfg, dtype, device),
         lambda cfg: _deposition().check(cfg),
         "substrate moving under a fed wire, sources aimed at the wire tip",
-        has_fluid=False, needs_thermal=True),
+        has_fluid=False, needs_thermal=True,
+        numerics={"density_diffusion": 0.1}),  # as in the four thesis cases
 }
 
 

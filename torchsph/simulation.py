@@ -31,6 +31,11 @@ class SimulationError(RuntimeError):
     """A run that cannot go on (blow-up, unstable time step); the message is a diagnosis."""
 
 
+class UnstableStepError(SimulationError):
+    """A fixed time step (``numerics.dt_s``) above a stability limit: bad input, refused
+    before the first step."""
+
+
 LIMIT_FORMULAS = {
     "acoustic": "cfl h / (c0 + |u|max)",
     "viscous": "0.125 h^2 rho_min / eta",
@@ -40,6 +45,12 @@ LIMIT_FORMULAS = {
     "evaporation": "0.5 m c_p / (A d q_evap/dT), the stiffness of the evaporation loss",
     "heating": "0.1 c_p T / |dh/dt| (with evaporation)",
 }
+
+
+# per-particle caches built lazily (some processes of a decomposed run may not hold them):
+# where a checkpoint or a migration does not carry one, it is dropped and rebuilt whole
+LAZY_CACHES = frozenset({"th._zeta", "th._area", "th.normal", "th._zeta_ok", "th._area_ok", "th.q_cond", "th.lit",
+                         "th._zeta_prev", "th._area_prev", "th._normal_prev", "sf.normal", "sf.kappa"})
 
 
 class PlanStats:
@@ -53,6 +64,7 @@ class PlanStats:
         self.current: dict[str, tuple[int, int]] = {}
         self.all_pairs = 0.0
         self.n = 0
+        self.n_active = 0  # particles this process owns and integrates (as of the last rebuild)
 
     def select(self, sim):
         s = sim.state
@@ -60,6 +72,11 @@ class PlanStats:
         per_row = sim.nl.mask.sum(1)  # one pass over the table; the rest reads these counts
         nbuilt = max(int((per_row > 0).sum()), 1)
         self.n = s.n
+        own = sim.comm.owned(sim)
+        integrated = sim.fluid_mask.clone()
+        if sim.thermal is not None:
+            integrated.index_fill_(0, sim.thermal.rows, True)
+        self.n_active = int((integrated if own is None else integrated & own).sum())
         self.all_pairs = s.n * int(per_row.sum()) / nbuilt
         if sim.fluid is not None:
             f = sim.fluid
@@ -336,7 +353,7 @@ class Simulation:
         """Refuse a fixed dt above any stability limit unless the case allows it."""
         for name, val in sorted(self.limits().items(), key=lambda kv: kv[1]):
             if self.dt_fixed > val and not self.allow_unstable_dt:
-                raise SimulationError(
+                raise UnstableStepError(
                     f"numerics.dt_s = {self.dt_fixed:g} s exceeds the {name} limit {val:.4g} s "
                     f"({LIMIT_FORMULAS[name]}); lower dt_s, remove it for the automatic step, "
                     "or set numerics.allow_unstable_dt = true")
@@ -477,7 +494,10 @@ class Simulation:
         if th is not None:
             d.update({"th.k": th.k, "th.T_set": th.T_set, "th._zeta": th._zeta, "th._area": th._area,
                       "th.normal": getattr(th, "normal", None), "th.q_cond": th.q_cond,
-                      "th._zeta_ok": th._zeta_ok, "th._area_ok": th._area_ok})
+                      "th._zeta_ok": th._zeta_ok, "th._area_ok": th._area_ok,
+                      # values of the last rebuild still to be reused where the new geometry is lazily computed
+                      "th._zeta_prev": th._zeta_prev, "th._area_prev": th._area_prev,
+                      "th._normal_prev": th._normal_prev})
             d["th.lit"] = getattr(th, "lit", None)
         sf = self.surface_model
         if sf is not None:
@@ -503,6 +523,30 @@ class Simulation:
             setattr(obj, name, v)
         self.fluid_mask = self.state.phase == Phase.FLUID
         self.n_fluid = int(self.fluid_mask.sum())
+
+    def rearm(self, arrays: dict[str, torch.Tensor], table=None):
+        """Put per-particle arrays (named as in :meth:`particle_arrays`) into the simulation
+        after its particles were swapped (a checkpoint restored, a migration between ranks):
+        the arrays first; then every lazily built cache that ``arrays`` does not hold is
+        dropped (it is rebuilt whole when next needed, never left over from the particles
+        before: a cache kept from other rows is wrong); ``table()`` (if given) sets the
+        neighbour table; the pair subsets are selected anew, which resets the per-rebuild
+        caches, and the given ones are put back; the fluid's pair geometry (what the next
+        continuity sum reuses) is recomputed, the rates kept."""
+        held = self.particle_arrays()
+        self.set_particle_arrays(arrays)
+        for k in held:
+            if k in LAZY_CACHES and k not in arrays:
+                owner, name = k.split(".", 1)
+                setattr({"th": self.thermal, "sf": self.surface_model}[owner], name, None)
+        if table is not None:
+            table()
+        self._select()
+        self.set_particle_arrays({k: v for k, v in arrays.items() if k.startswith(("th.", "sf."))})
+        if self.fluid is not None:
+            saved = self.dvdt
+            self.fluid.momentum(self.state, self.state.v)  # sets p and the cached geometry only
+            self.dvdt = saved
 
     def add_particles(self, new: ParticleState):
         """Append particles (e.g. a fed wire's new layer) at rest relative to their body,
