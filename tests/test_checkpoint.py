@@ -1,5 +1,6 @@
 """Checkpoints: a restart continues a run bit for bit; Ctrl-C leaves a loadable checkpoint;
 a run killed while writing one leaves the previous checkpoint intact."""
+import json
 import os
 import signal
 import subprocess
@@ -133,6 +134,9 @@ def test_sigint_leaves_a_loadable_checkpoint(tmp_path):
     assert "checkpoint" in err
     d = ckpt.load(tmp_path / "checkpoint.pt")
     assert d["step"] > 0
+    # summary.json is written on SIGINT too, saying so, with the wall time of the run
+    s1 = json.loads((tmp_path / "summary.json").read_text())
+    assert s1["interrupted"] is True and s1["steps"] == d["step"] and s1["wall_s"] == s1["wall_last_leg_s"] > 0
     # and the run continues from it
     r = subprocess.run([sys.executable, "-m", "torchsph", str(CASES / "poiseuille_2d"), "--out", str(tmp_path),
                         "--steps", "5", "--quiet", "--set", "scene.n_height=20",
@@ -140,6 +144,9 @@ def test_sigint_leaves_a_loadable_checkpoint(tmp_path):
                        cwd=ROOT, capture_output=True, text=True, timeout=300, check=False)
     assert r.returncode == 0, r.stderr
     assert ckpt.load(tmp_path / "checkpoint.pt")["step"] == d["step"] + 5
+    s2 = json.loads((tmp_path / "summary.json").read_text())  # the wall time over both legs, and the last
+    assert s2["interrupted"] is False and s2["steps"] == d["step"] + 5 and s2["steps_last_leg"] == 5
+    assert s2["wall_s"] == pytest.approx(s1["wall_s"] + s2["wall_last_leg_s"], rel=0.05)
 
 
 def test_sigkill_while_writing_keeps_the_previous_checkpoint(tmp_path):

@@ -73,3 +73,19 @@ def test_cli_thermal_run_reports_energy_balance(tmp_path):
     e = json.loads((tmp_path / "summary.json").read_text())["energy"]
     assert e["beam_J"] > 0 and e["radiation_J"] < 0
     assert abs(e["residual_J"]) < 1e-9 * e["beam_J"]
+
+
+def test_estimate_projects_the_wall_time_of_the_run(tmp_path):
+    """--estimate's projection (a probe of the run's first steps times the steps to the end,
+    from the time-step limits) is within a factor 1.5 of the wall time the run then takes."""
+    from torchsph.config import load_case
+    from torchsph.runner import run_case
+
+    _, cfg = load_case(CASES / "poiseuille_2d", ["scene.n_height=40"])
+    est = run_case(cfg, CASES / "poiseuille_2d", tmp_path / "est", t_end=0.03, progress=False, estimate=True)
+    assert not (tmp_path / "est").exists()  # an estimate writes nothing
+    _, cfg = load_case(CASES / "poiseuille_2d", ["scene.n_height=40"])
+    s = run_case(cfg, CASES / "poiseuille_2d", tmp_path / "run", t_end=0.03, progress=False)
+    assert abs(est["estimate"]["steps_left"] - s["steps"]) <= 1
+    ratio = est["projected_wall_s"] / s["wall_last_leg_s"]
+    assert 1 / 1.5 < ratio < 1.5, (est, s["wall_last_leg_s"], s["steps"])

@@ -391,8 +391,16 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     bar = Progress(total=steps if by_steps else t_end, start=0 if by_steps else sim.t, by_steps=by_steps,
                    enabled=progress and root and not estimate)
     step0 = sim.step
-    probe = {"steps": 0 if not estimate else None, "wall": 0.0, "shown": estimate}
-    PROBE_STEPS, PROBE_WALL = 20, 30.0
+    # the probe: steps 2.. of the run (the first one warms up), up to PROBE_STEPS or PROBE_WALL s
+    probe = {"t1": None, "shown": estimate}
+    PROBE_STEPS, PROBE_WALL = 20, 15.0
+
+    def probe_done(done: int):
+        if done == 1:
+            probe["t1"] = time.perf_counter()
+            return None
+        k, wall = done - 1, time.perf_counter() - probe["t1"]
+        return (k, wall) if (k >= PROBE_STEPS or wall >= PROBE_WALL) else None
 
     def callback(sim, info):
         done = sim.step - step0
@@ -402,15 +410,17 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         bar.update(done if by_steps else sim.t, *callback.counts, text=(
             f"step {sim.step} t={sim.t:.4g}s dt={info.dt:.3g}({info.limit}) N={callback.counts[0]}"),
             refresh_text=counts is not None)
-        if not probe["shown"] and (done >= PROBE_STEPS or time.perf_counter() - t0 >= PROBE_WALL):
+        # while the probe runs, rank 0's clock decides for every process (one broadcast a step)
+        measured = procs.bcast(probe_done(done)) if (estimate or not probe["shown"]) else None
+        if measured is not None and not probe["shown"]:
             probe["shown"] = True
             if root and progress:
                 bar.bar.clear()
-                for line in projection_lines(**cost, probe=(done, time.perf_counter() - t0))[2:]:
+                for line in projection_lines(**cost, probe=measured)[2:]:
                     print(line, file=sys.stderr, flush=True)
         if estimate:
-            if done >= PROBE_STEPS or time.perf_counter() - t0 >= PROBE_WALL:
-                raise _ProbeDone(done)
+            if measured is not None:
+                raise _ProbeDone(*measured)
             return
         if snapshot_due(sim, every_steps, next_out, interval):
             snapshot()
@@ -425,12 +435,11 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     try:
         run_interruptible(sim, interrupted, bar, t_end=t_end, steps=steps, callback=callback, stats=stats)
     except _ProbeDone as e:
-        wall = time.perf_counter() - t0
         if root:
-            for line in projection_lines(**cost, probe=(e.steps, wall))[2:]:
+            for line in projection_lines(**cost, probe=(e.steps, e.wall))[2:]:
                 print(line, file=sys.stderr, flush=True)
-        return {"estimate": cost, "probe_steps": e.steps, "probe_wall_s": wall,
-                "projected_wall_s": wall / max(e.steps, 1) * steps_left} if root else None
+        return {"estimate": cost, "probe_steps": e.steps, "probe_wall_s": e.wall,
+                "projected_wall_s": e.wall / e.steps * steps_left} if root else None
     except KeyboardInterrupt:
         _finish(procs, sim, cfg, case_path, out_dir, stats, snaps, setup_s, t0, wall_before, bar, step0,
                 restart, resumed, interrupted=True)
@@ -445,9 +454,9 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
 class _ProbeDone(Exception):
     """``--estimate``: the probe steps are done."""
 
-    def __init__(self, steps: int):
+    def __init__(self, steps: int, wall: float):
         super().__init__(f"probe of {steps} steps done")
-        self.steps = steps
+        self.steps, self.wall = steps, wall
 
 
 def _finish(procs, sim, cfg, case_path, out_dir, stats, snaps, setup_s, t0, wall_before, bar, step0,
