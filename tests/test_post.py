@@ -221,3 +221,21 @@ def test_settling_report_reads_the_runs_deposit_history(tmp_path):
     assert [b["settled"] for b in rep["bins"]] == [True, False]  # +0.5e-6 of 2e-6 in 0.05 s
     assert rep["settled_m2"] == pytest.approx(2.0e-6, rel=1e-12)
     assert "no entry" in post.settling_report(tmp_path, -2.5e-3, -0.5e-3, lag_s=0.2)["error"]
+
+
+def test_pictures_frame_the_melt_and_say_when_there_is_none(tmp_path):
+    """The render is framed on what has melted (a long cold wire is left out) and a velocity
+    picture without melt is not drawn (render returns False, no file)."""
+    x = lattice((0, 0, 0), (1e-3, 1e-3, 0.3e-3))
+    s = snap_of(x, T=np.full(len(x), 300.0), phase=np.full(len(x), 2))
+    s["peak_temperature"] = np.where(x[:, 0] < 3e-4, 2000.0, 300.0)
+    cfg = {"thermal": {"liquidus_K": 1753.0}}
+    lo, hi = post.focus_box(s, cfg, pad_m=1e-4)
+    assert hi[0] == pytest.approx(x[x[:, 0] < 3e-4, 0].max() + 1e-4) and lo[0] == pytest.approx(x[:, 0].min() - 1e-4)
+    assert post.focus_box(s, {"thermal": {"liquidus_K": 3000.0}}) is None  # nothing melted: frame everything
+    pytest.importorskip("pyvista")
+    try:
+        drawn = post.render(s, tmp_path / "v.png", cfg, what="velocity", window=(200, 150))
+    except Exception as e:  # noqa: BLE001 - VTK raises various errors without an OpenGL context
+        pytest.skip(f"VTK could not render off-screen here: {e}")
+    assert drawn is False and not (tmp_path / "v.png").exists()

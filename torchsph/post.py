@@ -389,36 +389,70 @@ def write_exaca_csv(path: str | Path, sol: dict, dx: float):
 
 
 # --- renders -----------------------------------------------------------------------------
+def focus_box(snap: dict, cfg: dict | None = None, pad_m: float = 1.5e-3):
+    """(lo, hi) of the box around what has melted (peak temperature above the liquidus:
+    the melt pool, the bead and the wire's melting tip), padded by ``pad_m``; None where
+    nothing has melted (the picture frames everything). A full-resolution deposition scene
+    has a 30 mm wire and a 20 mm substrate: framing them all leaves the pool a few pixels."""
+    TL = (cfg or {}).get("thermal", {}).get("liquidus_K")
+    if TL is None:
+        return None
+    hot = snap["peak_temperature"] > TL
+    if not hot.any():
+        return None
+    p = snap["position"][hot]
+    return p.min(0) - pad_m, p.max(0) + pad_m
+
+
 def render(snap: dict, png: str | Path, cfg: dict | None = None, what: str = "temperature",
-           window=(900, 600)):
-    """Off-screen PyVista render of one snapshot: the particles as points coloured by
-    temperature (what = "temperature": the visible ones are the free surface), or the melt
-    velocity as arrows on the liquid particles over the material in grey (what = "velocity")."""
+           window=(900, 600)) -> bool:
+    """Off-screen PyVista render of one snapshot, framed on the melt pool and bead
+    (:func:`focus_box`): the particles as points coloured by temperature (what =
+    "temperature"), or the melt coloured by its speed with arrows of its velocity over the
+    solid in grey (what = "velocity"; nothing is drawn, and False returned, where there is
+    no melt). Colour bars carry their units."""
     import pyvista as pv
 
     pv.OFF_SCREEN = True
-    pos = snap["position"] * 1e3  # mm
+    pos = snap["position"]
+    box = focus_box(snap, cfg)
+    inside = np.ones(len(pos), bool) if box is None else np.all((pos >= box[0]) & (pos <= box[1]), axis=1)
+    liquid = (snap["phase"] == 0) & inside
+    if what != "temperature" and not liquid.any():
+        return False
+    bar = dict(vertical=True, position_x=0.86, position_y=0.15, width=0.06, height=0.7, n_labels=5,
+               title_font_size=14, label_font_size=12, fmt="%.0f")
     p = pv.Plotter(off_screen=True, window_size=list(window))
+    mm = pos * 1e3
     if what == "temperature":
-        cloud = pv.PolyData(pos)
-        cloud["T, K"] = snap["temperature"]
-        p.add_mesh(cloud, scalars="T, K", cmap="inferno", point_size=9, render_points_as_spheres=True)
+        cloud = pv.PolyData(mm[inside])
+        cloud["temperature (K)"] = snap["temperature"][inside]
+        p.add_mesh(cloud, scalars="temperature (K)", cmap="inferno", point_size=9, render_points_as_spheres=True,
+                   scalar_bar_args={**bar, "title": "temperature (K)"})
     else:
-        liquid = snap["phase"] == 0
-        p.add_mesh(pv.PolyData(pos[~liquid]), color="lightgrey", point_size=4, render_points_as_spheres=True)
-        if liquid.any():
-            cloud = pv.PolyData(pos[liquid])
-            cloud["u, m/s"] = np.linalg.norm(snap["velocity"][liquid], axis=1)
-            cloud["vec"] = snap["velocity"][liquid]
-            scale = 0.5 / max(float(cloud["u, m/s"].max()), 1e-12)
-            p.add_mesh(cloud.glyph(orient="vec", scale="u, m/s", factor=scale), scalars="u, m/s", cmap="viridis")
-    p.add_text(f"t = {float(snap['time']) * 1e3:.1f} ms", font_size=10)
+        solid = inside & ~liquid
+        p.add_mesh(pv.PolyData(mm[solid]), color="lightgrey", opacity=0.25, point_size=4,
+                   render_points_as_spheres=True)
+        u = snap["velocity"][liquid]
+        speed = np.linalg.norm(u, axis=1)
+        cloud = pv.PolyData(mm[liquid])
+        cloud["speed (m/s)"] = speed
+        args = {**bar, "title": "melt speed (m/s)", "fmt": "%.2g"}
+        p.add_mesh(cloud, scalars="speed (m/s)", cmap="viridis", point_size=7, render_points_as_spheres=True,
+                   scalar_bar_args=args)
+        extent = float(np.ptp(mm[liquid], axis=0).max()) if liquid.sum() > 1 else 1.0
+        cloud["vec"] = u
+        arrows = cloud.glyph(orient="vec", scale="speed (m/s)", factor=0.25 * max(extent, 0.5) / max(speed.max(), 1e-12))
+        p.add_mesh(arrows, color="black")
+    p.add_text(f"t = {float(snap['time']) * 1e3:.1f} ms" + ("" if box is None else ", framed on the melt"),
+               font_size=10)
     p.camera_position = "iso"
     p.camera.azimuth = 30
-    p.camera.zoom(1.4)
+    p.reset_camera()
     p.show_axes()
     p.screenshot(str(png))
     p.close()
+    return True
 
 
 def timelapse(run_dir: str | Path, path: str | Path, what: str = "temperature", fps: int = 5):
@@ -458,7 +492,9 @@ def summarize(run_dir: str | Path, section_x: float | None = None, exaca: bool =
     out_dir = run_dir / "post"
     out_dir.mkdir(exist_ok=True)
     last = read_snapshot(snaps[-1][1])
-    res = {"run": str(run_dir), "melt_pool": melt_pool_history(run_dir)}
+    res = {"run": str(run_dir), "melt_pool": melt_pool_history(run_dir),
+           "liquid_all": melt_pool(last, cfg["thermal"]["liquidus_K"], cfg["scene"]["dx_m"], vol=volumes(last, cfg),
+                                   connected=False) if cfg["scene"].get("dx_m") and "thermal" in cfg else None}
     if cfg["scene"]["type"] == "deposition":
         prof = bead_profile(last, cfg)
         lo, hi = default_steady_range(last, cfg)
@@ -474,7 +510,7 @@ def summarize(run_dir: str | Path, section_x: float | None = None, exaca: bool =
         res["exaca_rows"] = write_exaca_csv(out_dir / "exaca.csv", sol, cfg["scene"]["dx_m"])
     if render_png:
         render(last, out_dir / "temperature.png", cfg, "temperature")
-        render(last, out_dir / "velocity.png", cfg, "velocity")
+        res["velocity_png"] = render(last, out_dir / "velocity.png", cfg, "velocity")
     if gif:
         timelapse(run_dir, out_dir / "temperature.gif")
     (out_dir / "post.json").write_text(json.dumps(res, indent=1, default=float) + "\n")
@@ -493,21 +529,32 @@ def main(argv=None):
     a = ap.parse_args(argv)
     res = summarize(a.run, a.section, a.exaca, a.render, a.gif)
     mp = res["melt_pool"][-1]
-    print(f"melt pool at t = {mp['time_s']:.4g} s: length {mp['length_m'] * 1e3:.3f} mm, width "
-          f"{mp['width_m'] * 1e3:.3f} mm, depth {mp['depth_m'] * 1e3:.3f} mm, volume "
-          f"{mp['volume_m3'] * 1e9:.4f} mm^3, peak {mp['peak_temperature_K']:.0f} K")
+    print(f"melt pool at t = {mp['time_s']:.4g} s (the largest connected liquid body reaching into the substrate): "
+          f"length {mp['length_m'] * 1e3:.3f} mm, width {mp['width_m'] * 1e3:.3f} mm, depth "
+          f"{mp['depth_m'] * 1e3:.3f} mm, volume {mp['volume_m3'] * 1e9:.4f} mm^3, peak {mp['peak_temperature_K']:.0f} K")
+    la = res.get("liquid_all")
+    if la is not None and la.get("n_liquid", 0) > mp.get("n_liquid", 0):
+        print(f"all liquid (deposit.json's measure: with drops on the wire and spatter): length "
+              f"{la['length_m'] * 1e3:.3f} mm, width {la['width_m'] * 1e3:.3f} mm, volume {la['volume_m3'] * 1e9:.4f} mm^3")
     if "bead_steady" in res:
         b = res["bead_steady"]
-        print(f"bead over x0 in [{b['x_range_m'][0] * 1e3:.2f}, {b['x_range_m'][1] * 1e3:.2f}] mm "
-              f"({b['columns']} columns): width {b['width_m'] * 1e3:.3f} mm, height {b['height_m'] * 1e3:.3f} mm, "
-              f"penetration {b['penetration_m'] * 1e3:.3f} mm, added area {b['added_area_m2'] * 1e6:.3f} mm^2")
+        if b["columns"] == 0 or not np.isfinite(b["width_m"]):
+            print(f"bead: none yet at t = {mp['time_s']:.4g} s (no deposited column behind the pool in x0 "
+                  f"{b['x_range_m'][0] * 1e3:.2f} .. {b['x_range_m'][1] * 1e3:.2f} mm; the bead forms once the "
+                  "substrate has carried melt past the pool: run longer)")
+        else:
+            print(f"bead over x0 in [{b['x_range_m'][0] * 1e3:.2f}, {b['x_range_m'][1] * 1e3:.2f}] mm "
+                  f"({b['columns']} columns): width {b['width_m'] * 1e3:.3f} mm, height {b['height_m'] * 1e3:.3f} mm, "
+                  f"penetration {b['penetration_m'] * 1e3:.3f} mm, added area {b['added_area_m2'] * 1e6:.3f} mm^2")
         st = res["bead_settling"]
         if "error" in st:
-            print(f"bead settling: {st['error']}")
+            print(f"bead settling: not yet measurable ({st['error']})")
         else:
             print(f"bead settling (deposit.json, 1 mm bins, changed <= {st['tolerance']:.0%} since t = "
                   f"{st['t_before_s']:.3g} s): {st['settled_bins']} of {len(st['bins'])} bins settled, "
                   f"mean added area {st['settled_m2'] * 1e6:.3f} mm^2")
+    if res.get("velocity_png") is False:
+        print("no melt in the last snapshot: no velocity picture")
     print(f"wrote {Path(a.run) / 'post'}")
     return 0
 
