@@ -130,9 +130,12 @@ def main(argv=None) -> int:
     except KeyboardInterrupt as e:
         print(f"torchsph: {e or 'interrupted'}", file=sys.stderr)
         return 130
-    print(f"torchsph: {s['steps']} steps to t = {s['t_final_s']:.6g} s, {s['n_particles']} particles, "
-          f"{s['wall_s']:.2f} s wall, {s['particle_steps_per_s']:.3g} particle-steps/s, "
-          f"dt bound by {s['dt_binding_limit']}"
+    legs = (f"{s['steps_last_leg']} steps in {s['wall_last_leg_s']:.2f} s (this leg; {s['steps']} steps, "
+            f"{s['wall_s']:.2f} s in all)" if s["steps_last_leg"] != s["steps"] else
+            f"{s['steps']} steps in {s['wall_s']:.2f} s")
+    print(f"torchsph: {legs} to t = {s['t_final_s']:.6g} s, {s['n_particles']} particles, "
+          f"{s['particle_steps_per_s']:.3g} particle-steps/s ({s['active_particle_steps_per_s']:.3g} of the "
+          f"integrated particles), dt bound by {s['dt_binding_limit']}"
           + (f", Mach {s['mach_max']:.3f}" if s["mach_max"] is not None else "") + f"; output in {out}")
     e = s.get("energy") or {}
     if e:

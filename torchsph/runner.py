@@ -481,7 +481,7 @@ def _finish(procs, sim, cfg, case_path, out_dir, stats, snaps, setup_s, t0, wall
         "device": str(sim.state.device), "dtype": str(sim.state.dtype).replace("torch.", ""),
         "dt_binding_limit": binding, "dt_limit_counts": dict(stats.limits),
         "dt_min_s": stats.dt_min if stats.dt_min < math.inf else None, "dt_max_s": stats.dt_max,
-        "c0_m_s": fm.prm.c0 if fm is not None and sim.n_fluid > 0 else None,
+        "c0_m_s": fm.prm.c0 if fm is not None else None,
         "mach_max": stats.vmax / fm.prm.c0 if fm is not None and (sim.n_fluid > 0 or stats.vmax > 0) else None,
         "neighbour_builds": sim.nl.n_builds, "energy": energy, "physics_plan": physics_plan(sim),
         "snapshots": len(snaps), "torch": torch.__version__, **extra,
