@@ -393,7 +393,11 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     step0 = sim.step
     # the probe: steps 2.. of the run (the first one warms up), up to PROBE_STEPS or PROBE_WALL s
     probe = {"t1": None, "shown": estimate}
-    PROBE_STEPS, PROBE_WALL = 20, 15.0
+    PROBE_STEPS, PROBE_WALL = (40, 30.0) if estimate else (20, 15.0)
+    if estimate and sim.dt_fixed is None and dt_exp < sim.choose_dt()[0]:
+        # the run will step at the melt's limit: the probe (thrown away) takes that step, so that
+        # what it measures includes the held conduction rates of that regime (multi-rate)
+        sim.dt_fixed = dt_exp
 
     def probe_done(done: int):
         if done == 1:
