@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import copy
 import os
 import sys
 from pathlib import Path
@@ -106,14 +107,15 @@ def main(argv=None) -> int:
         kw = dict(t_end=args.t_end, steps=args.steps, device=args.device, dtype=args.dtype,
                   progress=not args.quiet, checkpoint_every=args.checkpoint_every, restart=args.restart,
                   estimate=args.estimate)
+        runner = run_case
         if mpi_size() > 1 or _global_checkpoint(args.restart):
-            from parallel.run import run_case_mpi  # launched by mpirun / mpiexec
-            s = run_case_mpi(cfg, path, out, **kw)
-            if s is None:  # not rank 0
-                return 0
-        else:
-            s = run_case(cfg, path, out, **kw)
-        if args.estimate:
+            from parallel.run import run_case_mpi as runner  # launched by mpirun / mpiexec
+        if not args.estimate and not args.quiet:
+            # the cost before the run: a probe of a throw-away copy at the step the run will
+            # spend its steps in (the first steps of a run that will melt are not representative)
+            runner(copy.deepcopy(cfg), path, out, **{**kw, "estimate": True})
+        s = runner(cfg, path, out, **kw, announce=args.estimate)
+        if s is None or args.estimate:  # not rank 0, or only the estimate
             return 0
     except (CaseError, CheckpointError) as e:
         print(f"torchsph: error: {e}", file=sys.stderr)

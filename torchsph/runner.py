@@ -289,14 +289,17 @@ class SerialRun:
 
 def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, device=None,
              dtype=None, progress=True, checkpoint_every: int | None = None,
-             restart: Path | None = None, procs=None, estimate: bool = False) -> dict | None:
+             restart: Path | None = None, procs=None, estimate: bool = False,
+             announce: bool = True) -> dict | None:
     """Run a case with snapshots every output interval; returns the summary dict (on the
     root process; None on the others).
 
     ``procs``: the processes (:class:`SerialRun`, or ``parallel.run.SlabRun`` under MPI);
     the loop is the same. Before stepping, the cost is printed (particles, memory, steps
     to the end, snapshot disk) and, after a short probe of the run's own first steps, the
-    projected wall time; ``estimate`` stops there (nothing written). Checkpoints
+    projected wall time (``announce=False``: neither, e.g. where an ``estimate`` call has
+    said it already); ``estimate`` probes at the step of the regime the run will spend its
+    steps in, prints the projection and stops there (nothing written). Checkpoints
     (``out_dir/checkpoint.pt``, atomic) are written every ``checkpoint_every`` steps, at the
     end, and when the run is interrupted (SIGINT/Ctrl-C: the step in progress is finished,
     the checkpoint and ``summary.json`` written, then KeyboardInterrupt raised).
@@ -376,7 +379,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     snap_bytes = n_all * sum(a.nbytes for a in sio.snapshot_arrays(sim.state).values()) / max(sim.state.n, 1)
     cost = dict(n_all=n_all, n_active=n_act, rss_gb=peak_rss_gb(), ranks=procs.ranks, steps_left=steps_left,
                 dt_s=dt_exp, dt_why=dt_why, snapshots=n_snap, snapshot_bytes=snap_bytes)
-    if root and (progress or estimate):
+    if root and announce and (progress or estimate):
         for line in projection_lines(**cost, probe=None):
             print(line, file=sys.stderr, flush=True)
 
@@ -392,7 +395,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
                    enabled=progress and root and not estimate)
     step0 = sim.step
     # the probe: steps 2.. of the run (the first one warms up), up to PROBE_STEPS or PROBE_WALL s
-    probe = {"t1": None, "shown": estimate}
+    probe = {"t1": None, "shown": estimate or not announce}
     PROBE_STEPS, PROBE_WALL = (40, 30.0) if estimate else (20, 15.0)
     if estimate and sim.dt_fixed is None and dt_exp < sim.choose_dt()[0]:
         # the run will step at the melt's limit: the probe (thrown away) takes that step, so that
@@ -445,6 +448,8 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         return {"estimate": cost, "probe_steps": e.steps, "probe_wall_s": e.wall,
                 "projected_wall_s": e.wall / e.steps * steps_left} if root else None
     except KeyboardInterrupt:
+        if estimate:
+            raise
         _finish(procs, sim, cfg, case_path, out_dir, stats, snaps, setup_s, t0, wall_before, bar, step0,
                 restart, resumed, interrupted=True)
         raise
