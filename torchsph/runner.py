@@ -441,6 +441,9 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     t0 = time.perf_counter()
     try:
         run_interruptible(sim, interrupted, bar, t_end=t_end, steps=steps, callback=callback, stats=stats)
+        if estimate:  # the run was shorter than the probe: what it took is the measure
+            done = sim.step - step0
+            raise _ProbeDone(max(done - 1, 1), time.perf_counter() - (probe["t1"] or t0))
     except _ProbeDone as e:
         if root:
             for line in projection_lines(**cost, probe=(e.steps, e.wall))[2:]:
