@@ -14,7 +14,7 @@ from .simulation import SimulationError, UnstableStepError
 
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(prog="python -m torchsph",
-                                 description="Run a torchsph case (a folder with case.toml).")
+                                 description="Run a torchsph case (a folder with case.toml). Every run prints what it costs before it steps; --estimate prints only that.")
     ap.add_argument("case", help="case folder, e.g. cases/taylor_green_2d")
     ap.add_argument("--out", type=Path, default=None, help="output folder (default CASE_DIR/output)")
     g = ap.add_mutually_exclusive_group()
