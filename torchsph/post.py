@@ -539,9 +539,8 @@ def main(argv=None):
     if "bead_steady" in res:
         b = res["bead_steady"]
         if b["columns"] == 0 or not np.isfinite(b["width_m"]):
-            print(f"bead: none yet at t = {mp['time_s']:.4g} s (no deposited column behind the pool in x0 "
-                  f"{b['x_range_m'][0] * 1e3:.2f} .. {b['x_range_m'][1] * 1e3:.2f} mm; the bead forms once the "
-                  "substrate has carried melt past the pool: run longer)")
+            print(f"bead: none yet at t = {mp['time_s']:.4g} s (no deposited column behind the pool and past the "
+                  "start; the bead forms once the substrate has carried melt past the pool: run longer)")
         else:
             print(f"bead over x0 in [{b['x_range_m'][0] * 1e3:.2f}, {b['x_range_m'][1] * 1e3:.2f}] mm "
                   f"({b['columns']} columns): width {b['width_m'] * 1e3:.3f} mm, height {b['height_m'] * 1e3:.3f} mm, "
@@ -549,6 +548,8 @@ def main(argv=None):
         st = res["bead_settling"]
         if "error" in st:
             print(f"bead settling: not yet measurable ({st['error']})")
+        elif not st["settled_bins"]:
+            print(f"bead settling: no 1 mm bin has stopped filling yet ({len(st['bins'])} bins behind the pool)")
         else:
             print(f"bead settling (deposit.json, 1 mm bins, changed <= {st['tolerance']:.0%} since t = "
                   f"{st['t_before_s']:.3g} s): {st['settled_bins']} of {len(st['bins'])} bins settled, "
