@@ -86,11 +86,11 @@ def test_decomposed_run_equals_single_process(tmp_path, which):
                 assert rel(g[f"state_{k}"], ref[k]) < 1e-10, (n, k, rel(g[f"state_{k}"], ref[k]))
 
 
-# the deposition scene with a cold half, as at full size: the slab behind the wire holds no melt
-# and no lit particle, so after a rebuild that rank does not build its lazily computed
-# conduction normalisation (zeta) until the next full conduction evaluation, and a checkpoint
-# written then does not carry it (b14e316 restored it from the freshly built t = 0 state: zeta
-# = 0 on rows made active since, infinite conduction, a blow-up ~20 steps after the restart)
+# the deposition scene with a cold half, checkpointed at the end of a step in which a particle
+# melted: the phase change re-selects the pairs after the conduction evaluation, which drops the
+# lazily built conduction normalisation (zeta) until the next evaluation, so the checkpoint does
+# not carry it (b14e316 restored it from the freshly built t = 0 state: zeta = 0 on rows made
+# active since, infinite conduction; at full size a blow-up ~20 steps after the restart)
 COLD_HALF = (ROOT / "cases" / "perpendicular_350W",
              ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[6.0e-3, 3.0e-3, 1.0e-3]", "scene.wire_offset_m=1.25e-3",
               "scene.wire_length_m=1.0e-3", "scene.wire_gap_m=0.5e-3", "scene.wire_feed_m_s=0.05"], 0)
