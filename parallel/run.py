@@ -167,13 +167,13 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, device=None, **kw) -
             raise CaseError("[run] device = \"cuda\": no CUDA device is available here (use cpu)")
         run["device"] = f"cuda:{procs.comm.rank % torch.cuda.device_count()}"
     fail_rank = int(os.environ.get("TORCHSPH_TEST_RAISE_RANK", "-1"))  # tests: one rank raises
-    if fail_rank == procs.comm.rank:
-        any_ = procs.any
+    if fail_rank == procs.comm.rank:  # the interrupt check runs once a step: fail at the third
+        calls, any_ = [0], procs.any
 
-        def failing_any(flag, sim_step=[0]):  # noqa: B006 - a counter of the calls
-            sim_step[0] += 1
-            if sim_step[0] >= 3:
-                raise RuntimeError(f"test failure injected on rank {procs.comm.rank} at step {sim_step[0]}")
+        def failing_any(flag):
+            calls[0] += 1
+            if calls[0] >= 3:
+                raise RuntimeError(f"test failure injected on rank {procs.comm.rank} at step {calls[0]}")
             return any_(flag)
         procs.any = failing_any
     return run_case(cfg, case_path, out_dir, procs=procs, **kw)

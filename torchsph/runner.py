@@ -213,7 +213,8 @@ def expected_dt(sim: Simulation) -> tuple[float, str]:
     """The step the run is expected to take once under way: the time-step limits at the
     current state, and where the scene has a fluid model (melt to come) the acoustic,
     viscous and capillary limits of the melt at rest, with 10 % Mach for the flow."""
-    lim = dict(sim.limits())
+    now = sim.limits()
+    lim = dict(now)
     fm = sim.fluid_model
     if fm is not None and sim.dt_fixed is None:
         prm, h = fm.prm, sim.h
@@ -226,7 +227,7 @@ def expected_dt(sim: Simulation) -> tuple[float, str]:
     if sim.dt_fixed is not None:
         return sim.dt_fixed, "fixed"
     name = min(lim, key=lim.get)
-    return lim[name], name + " limit" + ("" if name in sim.limits() else ", once melt flows")
+    return lim[name], name + " limit" + ("" if name in now else ", once melt flows")
 
 
 def peak_rss_gb() -> float | None:

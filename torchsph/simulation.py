@@ -495,9 +495,11 @@ class Simulation:
             d.update({"th.k": th.k, "th.T_set": th.T_set, "th._zeta": th._zeta, "th._area": th._area,
                       "th.normal": getattr(th, "normal", None), "th.q_cond": th.q_cond,
                       "th._zeta_ok": th._zeta_ok, "th._area_ok": th._area_ok,
-                      # values of the last rebuild still to be reused where the new geometry is lazily computed
-                      "th._zeta_prev": th._zeta_prev, "th._area_prev": th._area_prev,
-                      "th._normal_prev": th._normal_prev})
+                      # the last rebuild's values, to be reused by the lazy recomputation: carried only
+                      # while it is pending (else unused, and kept out of the per-step ghost refresh)
+                      "th._zeta_prev": th._zeta_prev if th._zeta is None else None,
+                      "th._area_prev": th._area_prev if th._area is None else None,
+                      "th._normal_prev": th._normal_prev if th._area is None else None})
             d["th.lit"] = getattr(th, "lit", None)
         sf = self.surface_model
         if sf is not None:
