@@ -53,7 +53,7 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | Non
     d = {"format": FORMAT, "config_hash": chash, "physics": phys, "t": sim.t, "step": sim.step,
          "arrays": {k: torch.as_tensor(v) for k, v in arrays.items()},
          "energy": dict(zip(ek, sums[:len(ek)])), "heat": dict(zip(hk, sums[len(ek):len(ek) + len(hk)])),
-         "E0": sums[-1] if sums else None, "t_cond": getattr(sim.thermal, "t_cond", None),
+         "E0": sums[-1] if sums else None,
          "n_builds": sim.nl.n_builds, "rng": torch.get_rng_state(), "extra": extra, "written": time.time(),
          "body_velocity": sim.body_velocity.cpu(), "stale": sim._stale,
          "feeder": feeder, "escape": escape}
@@ -86,7 +86,6 @@ def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | No
         sim.energy = {k: torch.tensor(v, dtype=dt) if first else z for k, v in d["energy"].items()}
         sim._heat = {k: torch.tensor(v, dtype=dt) if first else z for k, v in d["heat"].items()}
         sim._E0 = d["E0"] if first else 0.0
-        sim.thermal.t_cond = d["t_cond"]
     torch.set_rng_state(d["rng"])
     sim.info = sim._measure()
     return {**d.get("extra", {}), "step_control_changes": changes}

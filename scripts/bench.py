@@ -4,6 +4,7 @@ rho0 = 1, c0 = 10 U, lattice start, t_end = 1, nx in {50, 100, 200}.
 
     python scripts/bench.py            # all rows, float64 and float32 (CUDA rows when present)
     python scripts/bench.py --quick    # nx = 50 only
+    python scripts/bench.py --deposition [--ref b14e316]   # the deposition step against a commit
 
 linf = |max|u|(t_end) / (U exp(-8 pi^2 t / Re)) - 1|;
 L1 = mean | |u_i| - |u_exact(x_i)| | / mean |u_exact(x_i)|.
@@ -91,7 +92,18 @@ def main(argv=None):
     ap.add_argument("--device", nargs="*", default=None)
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--conduction-only", action="store_true", help="only the conduction table")
+    ap.add_argument("--deposition", action="store_true",
+                    help="the deposition step against --ref (scripts/bench_deposition.py)")
+    ap.add_argument("--ref", default="b14e316", help="reference commit for --deposition")
+    ap.add_argument("--steps", type=int, default=100, help="--deposition: timed steps on the preview state")
+    ap.add_argument("--full-steps", type=int, default=50, help="--deposition: timed first steps of the full scene")
+    ap.add_argument("--states", nargs="*", default=["preview", "full"], choices=("preview", "full"))
     a = ap.parse_args(argv)
+    if a.deposition:
+        from bench_deposition import run
+
+        run(a.ref, a.steps, a.full_steps, a.states)
+        return
     nxs = a.nx or ([50] if a.quick else [50, 100, 200])
     devices = a.device or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
     compile = not a.no_compile

@@ -1,10 +1,10 @@
-"""Side-by-side cost of skipping (active set + multi-rate conduction) on a deposition preview.
+"""Side-by-side cost of skipping (the active set: cold solid left out) on a deposition preview.
 
     python scripts/skip_speedup.py cases/perpendicular_350W            # runs both (minutes)
     python scripts/skip_speedup.py --read OUT_SKIP OUT_NOSKIP [--control OUT_NOSKIP_PERTURBED]
 
 Runs the case's preview twice, with the default skipping and with ``--no-skip`` (every
-particle integrated every step, conduction every step), one after the other, and prints
+particle integrated every step), one after the other, and prints
 wall time, particle-steps/s, the speed-up, and the differences in peak temperature (the
 hottest any particle got), the melt-pool volume at the end, and the fused volume (every
 particle that was ever above the liquidus) — at the end and at every snapshot. With

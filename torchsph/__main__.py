@@ -29,8 +29,8 @@ def parse_args(argv=None):
     ap.add_argument("--preview", action="store_true",
                     help="run the case's coarse, short [preview] variant (minutes on a laptop CPU)")
     ap.add_argument("--no-skip", action="store_true",
-                    help="skip nothing: every particle every step, conduction every step (same as --set "
-                         "numerics.skip_cold_solid=false --set numerics.conduction_reuse=0)")
+                    help="skip nothing: every particle every step, cold solid included (same as --set "
+                         "numerics.skip_cold_solid=false)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     ap.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                     help="write OUT/checkpoint.pt every N steps (always at the end and on Ctrl-C)")
@@ -96,7 +96,7 @@ def main(argv=None) -> int:
         if args.steps is not None and args.steps <= 0:
             raise CaseError(f"--steps {args.steps}: must be > 0")
         overrides = (args.overrides + (["numerics.compile=true"] if args.compile else [])
-                     + (["numerics.skip_cold_solid=false", "numerics.conduction_reuse=0"] if args.no_skip else []))
+                     + (["numerics.skip_cold_solid=false"] if args.no_skip else []))
         path, cfg = load_case(args.case, overrides, preview=args.preview)
         out = args.out if args.out is not None else path.parent / ("output_preview" if args.preview else "output")
         if not args.estimate:

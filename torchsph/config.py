@@ -89,10 +89,19 @@ def _check_value(where: str, key: Key, v, dim: int | None):
     return v
 
 
+# keys that older versions accepted, with why they went
+REMOVED = {"numerics.conduction_reuse": "multi-rate conduction: conduction is now evaluated at every step, "
+                                        "a sparse operator that costs less than holding rates did"}
+
+
 def validate_section(name: str, raw: dict, schema: dict[str, Key], dim: int | None = None) -> dict:
     if not isinstance(raw, dict):
         raise CaseError(f"[{name}] must be a table, got {_fmt(raw)}")
     unknown = sorted(set(raw) - set(schema))
+    for k in unknown:
+        if f"{name}.{k}" in REMOVED:
+            raise CaseError(f"[{name}] {k} = {_fmt(raw[k])}: this key was removed ({REMOVED[f'{name}.{k}']}); "
+                            "delete it from the case")
     if unknown:
         raise CaseError(f"unknown key [{name}] {unknown[0]} = {_fmt(raw[unknown[0]])} "
                         f"(allowed: {', '.join(schema)})")
@@ -147,9 +156,6 @@ NUMERICS = {
     "partial_rebuild": Key("bool", default=True,
                            doc="neighbour rebuilds keep the largest rigid body's mutual pairs and search "
                                "only the other rows (one process; false: full rebuilds)"),
-    "conduction_reuse": Key("float", default=0.1, ge=0, le=1,
-                            doc="multi-rate conduction: re-evaluate it once per this fraction of the thermal "
-                                "limit (0 = every step)"),
     "rebalance_every": Key("int", default=10, ge=0,
                            doc="MPI: move slab boundaries to equal measured cost every this many migrations (0 = never)"),
     "active_tolerance_K": Key("float", default=1.0, gt=0,

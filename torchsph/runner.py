@@ -91,7 +91,7 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
                      phase_change=(cfg["thermal"]["solidus_K"], cfg["thermal"]["liquidus_K"],
                                    cfg["thermal"]["mushy_drag_1_s"]) if phase_change else None,
                      surface=surface, active=active, feeder=scene.info.get("feeder"), escape=scene.info.get("escape"),
-                     cond_reuse=nm["conduction_reuse"], comm=comm, partial_rebuild=nm.get("partial_rebuild", True))
+                     comm=comm, partial_rebuild=nm.get("partial_rebuild", True))
     if comm is not None:
         comm.check(sim)
     return scene, sim
@@ -142,8 +142,7 @@ def physics_plan(sim: Simulation) -> dict:
                  "marangoni": sf is not None and sf.marangoni_on,
                  "recoil": sf is not None and sf.prm.recoil,
                  "active_set": (f"on (tolerance {sim.active_set.tol:g} K)" if sim.active_set is not None
-                                else "off"),
-                 "conduction_reuse": sim.cond_reuse if sim.thermal is not None else None})
+                                else "off")})
     return plan
 
 
@@ -399,8 +398,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     probe = {"t1": None, "shown": estimate or not announce}
     PROBE_STEPS, PROBE_WALL = (40, 30.0) if estimate else (20, 15.0)
     if estimate and sim.dt_fixed is None and dt_exp < sim.choose_dt()[0]:
-        # the run will step at the melt's limit: the probe (thrown away) takes that step, so that
-        # what it measures includes the held conduction rates of that regime (multi-rate)
+        # the run will step at the melt's limit: the probe (thrown away) takes that step
         sim.dt_fixed = dt_exp
 
     def probe_done(done: int):

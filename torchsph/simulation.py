@@ -49,7 +49,7 @@ LIMIT_FORMULAS = {
 
 # per-particle caches built lazily (some processes of a decomposed run may not hold them):
 # where a checkpoint or a migration does not carry one, it is dropped and rebuilt whole
-LAZY_CACHES = frozenset({"th._zeta", "th._area", "th.normal", "th._zeta_ok", "th._area_ok", "th.q_cond", "th.lit",
+LAZY_CACHES = frozenset({"th._zeta", "th._area", "th.normal", "th._zeta_ok", "th._area_ok", "th.lit",
                          "th._zeta_prev", "th._area_prev", "th._normal_prev", "sf.normal", "sf.kappa"})
 
 
@@ -69,7 +69,10 @@ class PlanStats:
     def select(self, sim):
         s = sim.state
         cur = {}
-        per_row = sim.nl.mask.sum(1)  # one pass over the table; the rest reads these counts
+        mask = sim.nl.mask
+        built = sim.active_set.work if sim.active_set is not None else None  # rows with a table row
+        rows_t = torch.nonzero(built).squeeze(1) if built is not None else None
+        per_row = (mask if rows_t is None else mask.index_select(0, rows_t)).sum(1)
         nbuilt = max(int((per_row > 0).sum()), 1)
         self.n = s.n
         own = sim.comm.owned(sim)
@@ -78,14 +81,15 @@ class PlanStats:
             integrated.index_fill_(0, sim.thermal.rows, True)
         self.n_active = int((integrated if own is None else integrated & own).sum())
         self.all_pairs = s.n * int(per_row.sum()) / nbuilt
+        pairs = lambda rows: int(mask.index_select(0, rows).sum())  # noqa: E731
         if sim.fluid is not None:
             f = sim.fluid
-            cur["momentum"] = (f.rows_f.numel(), int(per_row.index_select(0, f.rows_f).sum()))
+            cur["momentum"] = (f.rows_f.numel(), pairs(f.rows_f))
             if f.has_walls:
                 cur["wall"] = (f.rows_w.numel(), int(f.mask_w.sum()))
         if sim.thermal is not None:
             th = sim.thermal
-            cur["conduction"] = (th.rows.numel(), int(per_row.index_select(0, th.rows).sum()))
+            cur["conduction"] = (th.rows.numel(), pairs(th.rows))
         self.current = cur
 
     def add(self, sim):
@@ -129,20 +133,18 @@ class Simulation:
                  damping_time: float = 0.0, thermal: Conduction | None = None,
                  phase_change: tuple[float, float, float] | None = None,
                  surface: SurfaceForces | None = None, active: ActiveSet | None = None,
-                 feeder=None, cond_reuse: float = 0.0, comm=None, escape=None, partial_rebuild: bool = True):
+                 feeder=None, comm=None, escape=None, partial_rebuild: bool = True):
         """``fluid`` and ``thermal`` are the physics a scene declares; either may be None
         and then costs nothing (a conduction study has no momentum, a flow no energy).
         ``active`` leaves cold quiescent solid out of the work (:mod:`torchsph.active`);
         ``feeder`` adds particles as the run goes (``new_particles(sim, t)``, e.g. a fed
         wire); ``escape`` says which particles have left the scene for good
         (``outside(x, t)``, :class:`~torchsph.deposition.EscapeBox`): they are removed at the
-        next neighbour rebuild. ``cond_reuse`` = f > 0: multi-rate conduction, see
-        :meth:`_reuse_conduction`. ``partial_rebuild``: neighbour rebuilds keep the largest rigid
+        next neighbour rebuild. ``partial_rebuild``: neighbour rebuilds keep the largest rigid
         body's mutual pairs and search only the other rows (:class:`~torchsph.neighbors.VerletList`;
         one process, scenes with fluid)."""
         self.state = state
         self.comm = comm if comm is not None else SerialComm()  # decomposition hooks (no-ops in one process)
-        self.cond_reuse = cond_reuse
         self._rebuilt = False  # the last step rebuilt the neighbour list
         self._new_body_velocity = False
         self.active_set = active if (active is not None and not domain.any_periodic) else None
@@ -238,7 +240,7 @@ class Simulation:
         if self.nl.update(self.state.x, force=force, subset=subset, rigid=rigid):
             self._stale = False
             self._rebuilt = True
-            self._select()
+            self._select(new_table=True)
 
     def _rigid_body(self) -> torch.Tensor | None:
         """Mask of the largest rigid group: the solid particles of one body, or the walls
@@ -254,24 +256,14 @@ class Simulation:
 
     def _work_set(self) -> torch.Tensor:
         """Refresh the active set (at a neighbour rebuild) and return its work mask."""
-        lit = getattr(self.thermal, "lit", None)
-        before = self.active_set.active
-        self.active_set.refresh(self.state, lit)
-        th = self.thermal
-        if th is not None and th.q_cond is not None:  # held rates stay; newly active rows need theirs
-            if before is None or before.shape != self.active_set.active.shape:
-                th.q_cond = None
-            else:  # rows that left hold no rate (they are not integrated: it would be booked, not stored)
-                act = self.active_set.active
-                th.q_fresh = act & ~before
-                th.q_cond = torch.where(act, th.q_cond, torch.zeros_like(th.q_cond))
+        self.active_set.refresh(self.state, getattr(self.thermal, "lit", None))
         return self.active_set.work
 
     @property
     def active_mask(self) -> torch.Tensor | None:
         return self.active_set.active if self.active_set is not None else None
 
-    def _select(self):
+    def _select(self, new_table: bool = False):
         if self.fluid is not None:
             self.fluid.select_pairs(self.state, self.nl.nb, self.nl.mask, level=self.comm.levels(self),
                                     depth=getattr(self.comm, "depth", 2))
@@ -280,7 +272,8 @@ class Simulation:
         if self.thermal is not None:
             self.thermal.owned = self.comm.owned(self)
             self.thermal.select_pairs(self.state, self.nl.nb, self.nl.mask, active=self.active_mask,
-                                      work=self.active_set.work if self.active_set is not None else None)
+                                      work=self.active_set.work if self.active_set is not None else None,
+                                      x_ref=self.nl.x_ref, new_table=new_table)
         self.plan.select(self)
 
     @property
@@ -434,8 +427,7 @@ class Simulation:
             solid = (s.phase == Phase.SOLID).unsqueeze(-1)
             s.v = torch.where(solid, self.body_velocity.index_select(0, s.body), s.v)
         if self.thermal is not None:
-            P, heat = self.thermal.power(s, s.T, self.t + dt,  # 2 (W per particle; 0 on walls)
-                                         reuse_conduction=self._reuse_conduction(self.t + dt))
+            P, heat = self.thermal.power(s, s.T, self.t + dt)  # 2 (W per particle; 0 on walls)
             self.dTdt = P / s.m
             for k, v in heat.items():  # accumulated on the device: no sync per step
                 self.energy[k] = self.energy.get(k, 0.0) + 0.5 * dt * (self._heat[k] + v)
@@ -461,24 +453,6 @@ class Simulation:
         self.body_velocity[body] = v
         self._new_body_velocity = True
 
-    def _reuse_conduction(self, t_new: float) -> bool:
-        """Multi-rate conduction: the conduction power is re-evaluated only once the time since
-        its last evaluation would exceed f x the thermal limit (f = numerics.conduction_reuse);
-        in between it is held, except on the rows where it changes fast (melt, lit particles
-        and their neighbours: :meth:`Conduction.fast_rows`), which are evaluated every step.
-        Held rates are the explicit Euler step of size <= f x limit for the diffusion, stable
-        for f <= 1; the pair exchange stays antisymmetric inside each group, and what the
-        fresh and held rates across the groups' boundary (in solid, one kernel support from
-        the melt) do not balance is booked in the energy balance (``conduction``); the beam,
-        losses and phase change are evaluated every step. With the
-        melt's acoustic step 300x below the thermal limit, f = 0.1 evaluates conduction about
-        once in 30 steps. Scenes stepping at the thermal limit (no fluid) evaluate it every step."""
-        th = self.thermal
-        if self.cond_reuse <= 0 or th.q_cond is None or th.t_cond is None:
-            return False
-        lim = self._pre_limits.get("thermal", 0.0)
-        return t_new - th.t_cond <= self.cond_reuse * lim
-
     # --- per-particle arrays (what a decomposition moves with a particle) -------
     def particle_arrays(self) -> dict[str, torch.Tensor]:
         """Every per-particle array the step carries from one step to the next, by name
@@ -492,8 +466,8 @@ class Simulation:
         d["nl.x_ref"] = self.nl.x_ref
         th = self.thermal
         if th is not None:
-            d.update({"th.k": th.k, "th.T_set": th.T_set, "th._zeta": th._zeta, "th._area": th._area,
-                      "th.normal": getattr(th, "normal", None), "th.q_cond": th.q_cond,
+            d.update({"th.k": th.k, "th.T_set": th.T_set, "th.steady": th.steady, "th._zeta": th._zeta, "th._area": th._area,
+                      "th.normal": getattr(th, "normal", None),
                       "th._zeta_ok": th._zeta_ok, "th._area_ok": th._area_ok,
                       # the last rebuild's values, to be reused by the lazy recomputation: carried only
                       # while it is pending (else unused, and kept out of the per-step ghost refresh)
@@ -557,8 +531,7 @@ class Simulation:
         its slab. Returns (the particles added here, the row permutation the decomposition
         applied to keep its own rows first, or None)."""
         self._stale = True
-        if self.thermal is not None:  # on every process: conduction and the geometry are evaluated afresh
-            self.thermal.q_cond = None
+        if self.thermal is not None:  # on every process: the geometry is evaluated afresh
             self.thermal._zeta_ok = self.thermal._area_ok = None
         new, own = self.comm.claim(self, new)
         if new.n == 0:
@@ -605,8 +578,7 @@ class Simulation:
         if self.thermal is not None:
             lost = (s.m * H_half)[mine].sum()
             self.energy["escaped"] = self.energy.get("escaped", 0.0) - lost
-            th = self.thermal  # neighbours change: conduction and the geometry are evaluated afresh
-            th.q_cond = None
+            th = self.thermal  # neighbours change: the geometry is evaluated afresh
             th._zeta_ok = th._area_ok = None
         n = s.n
         self.set_particle_arrays({k: v[keep] for k, v in self.particle_arrays().items() if v.shape[0] == n})

@@ -15,6 +15,7 @@ import torch
 
 from .fluid import embed, gather_nb, pair_geometry
 from .beam import beam_power, in_beam
+from .heat_operator import ConductionOperator
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import ParticleState, Phase
@@ -237,27 +238,38 @@ class Conduction:
         self.k = conductivity  # (N,) W/(m K), per particle
         self.beams = list(beams)  # surface heat sources (2.7)
         self.dx = dx
-        self.q_cond = None  # conduction power (W per particle) of the last evaluation, and its time
-        self.q_fresh = None  # particles made active at this step's rebuild: no held rate yet
-        self.t_cond = None
         self.losses = losses if losses is not None else SurfaceLosses()
         self.delta_norm = flat_surface_delta(kernel, h_over_dx) if self.losses.active else 1.0
-        self._fn = torch.compile(conduction_pairs, dynamic=True) if compile else conduction_pairs
         self._zeta_fn = torch.compile(laplacian_norm, dynamic=True) if compile else laplacian_norm
 
     def select_pairs(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor,
-                     active: torch.Tensor | None = None, work: torch.Tensor | None = None):
+                     active: torch.Tensor | None = None, work: torch.Tensor | None = None,
+                     x_ref: torch.Tensor | None = None, new_table: bool = True):
         """Rows: every particle but the walls, or with an active set only its active
-        particles (and the walls of its work set)."""
+        particles (and the walls of its work set). ``x_ref``: the positions at the last
+        neighbour build (default: now); ``new_table``: the table was just built (else the
+        phases changed, or the particles were swapped in with their arrays)."""
         wall = state.phase == Phase.WALL
         self.wall_mask = wall
         # Laplacian normalisation and surface area per particle (and the surface normal):
         # recomputed after each neighbour rebuild, except where they cannot have changed
-        self._mark_rigid(state, nb, mask)
+        self._mark_rigid(state, nb, mask, work)
         self._zeta = None
         self._area = None
         self.rows = torch.nonzero(~wall if active is None else ~wall & active).squeeze(1)
         self.nb = nb.index_select(0, self.rows)
+        solid = state.phase == Phase.SOLID
+        if new_table or self.steady is None or self.steady.shape[0] != state.n:
+            self.steady = solid  # solid at this neighbour build, at the table's positions
+        else:  # a phase change since: melt leaves, what froze joins only at the next build
+            self.steady = self.steady & solid
+        op = getattr(self, "op", None)
+        if op is None or not op.same_table(self.rows, nb):  # the pair list once per table
+            op = self.op = ConductionOperator(self.rows, self.nb, mask.index_select(0, self.rows),
+                                              state.x if x_ref is None else x_ref, self.steady, state.body,
+                                              self.kernel, self.h, self.domain)
+            op.table = nb
+        op.select(self.steady)
         self.rows_w = torch.nonzero(wall if work is None else wall & work).squeeze(1)
         if not hasattr(self, "T_set"):
             self.T_set = state.T.clone()  # the walls' prescribed temperatures
@@ -286,14 +298,24 @@ class Conduction:
     # melts marks the particle; particles added (a fed wire's layer) give old rows new
     # neighbours of their own body, so the next rebuild recomputes every row.
     _zeta_ok = _area_ok = None  # per particle: the cached value holds and was computed rigid
+    steady = None  # per particle: solid with no phase change since the last neighbour build
     _zeta_prev = _area_prev = _normal_prev = None
 
-    def _mark_rigid(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor):
+    def _mark_rigid(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor, work=None):
+        """Per particle: solid, not next to melt, and so are all its neighbours, of its body.
+        Only the rows of the table's ``work`` set (None: all) are read: the others have no
+        neighbours (a solid one is rigid)."""
         fluid = state.phase == Phase.FLUID
+        solid = state.phase == Phase.SOLID
+        w = None if work is None else torch.nonzero(work).squeeze(1)
+        nbw, mw = (nb, mask) if w is None else (nb.index_select(0, w), mask.index_select(0, w))
         # solid next to melt is the melt's wall: its density follows the melt's pressure
-        firm = (state.phase == Phase.SOLID) & ~(gather_nb(fluid, nb) & mask).any(1)
-        same = (gather_nb(firm, nb) & (gather_nb(state.body, nb) == state.body.unsqueeze(1))) | ~mask
-        self._rigid = firm & same.all(1)
+        firm_w = (solid if w is None else solid.index_select(0, w)) & ~(gather_nb(fluid, nbw) & mw).any(1)
+        firm = firm_w if w is None else solid.index_copy(0, w, firm_w)
+        body_w = state.body if w is None else state.body.index_select(0, w)
+        same = (gather_nb(firm, nbw) & (gather_nb(state.body, nbw) == body_w.unsqueeze(1))) | ~mw
+        rigid_w = firm_w & same.all(1)
+        self._rigid = rigid_w if w is None else firm.index_copy(0, w, rigid_w)
         n = state.n
         for name in ("zeta", "area"):
             ok = getattr(self, f"_{name}_ok")
@@ -324,8 +346,9 @@ class Conduction:
         T = self.wall_temperature(state, T)
         if self._zeta is None:
             self._zeta = self.zeta(state)
-        q = self._fn(state.x, T, self.k, state.m, state.rho, self._zeta, self.rows, self.nb,
-                     self.kernel, self.h, self.domain)
+        if not self.op.built:  # once per selection, when zeta is known
+            self.op.build(self.k, self._zeta)
+        q = self.op.apply(state.x, T, self.k, state.m / state.rho, self._zeta)
         return embed(self.rows, q, state.n)
 
     def zeta(self, state: ParticleState) -> torch.Tensor:
@@ -342,33 +365,16 @@ class Conduction:
             return torch.where(in_rows, prev, self.wall_mask.to(z.dtype)).index_copy(0, rows, z)
         return embed(rows, z, state.n) + self.wall_mask.to(z.dtype)
 
-    def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False,
-              reuse_conduction: bool = False):
+    def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False):
         """Heat per particle (W): conduction V_i div(k grad T), beam power, minus surface
         losses; and the totals by kind (W) (with ``per_particle``, the per-particle arrays by
         kind instead, for a diagnosis). The step integrates the specific enthalpy,
         dh/dt = P_i / m_i, and recovers T from h(T) = int c_eff dT (2.11): the same model as
         rho c_eff dT/dt = div(k grad T) + sources, but the latent heat is absorbed exactly
-        however narrow the mushy interval is compared with one step's temperature change."""
-        fresh = self.q_fresh
-        if not per_particle:  # (a diagnosis's evaluation leaves them to the step)
-            self.q_fresh = None
-        if reuse_conduction and self.q_cond is not None:  # multi-rate: see Simulation.cond_reuse
-            q = self.q_cond
-            fast = self.fast_rows(state, fresh)  # next to melt or a beam: evaluated every step
-            if fast.numel():
-                if self._zeta is None:
-                    self._zeta = self.zeta(state)
-                rows = self.rows.index_select(0, fast)
-                qf = self._fn(state.x, self.wall_temperature(state, T), self.k, state.m, state.rho, self._zeta,
-                              rows, self.nb.index_select(0, fast), self.kernel, self.h, self.domain)
-                q = q.index_copy(0, rows, qf * (state.m / state.rho).index_select(0, rows))
-                if fresh is not None and not per_particle:  # rows just made active: held from now on
-                    self.q_cond = torch.where(fresh, q, self.q_cond)
-        else:
-            q = self.heat_rate(state, T) * (state.m / state.rho)
-            if not per_particle:
-                self.q_cond, self.t_cond = q, t
+        however narrow the mushy interval is compared with one step's temperature change.
+        Conduction is evaluated on every row at every step (one sparse product and the
+        moving pairs: :mod:`torchsph.heat_operator`)."""
+        q = self.heat_rate(state, T) * (state.m / state.rho)
         parts = {"conduction": q}
         if self.beams:
             parts["beam"] = self.beam_power(state, t, self.rows)
@@ -388,19 +394,6 @@ class Conduction:
                   for k, v in parts.items()}
         totals.setdefault("beam", torch.zeros((), dtype=T.dtype, device=T.device))
         return P, totals
-
-    def fast_rows(self, state: ParticleState, fresh: torch.Tensor | None = None) -> torch.Tensor:
-        """Positions in ``rows`` of the particles whose conduction changes fast: melt, lit
-        particles, and every row with one of them among its neighbours; and the ``fresh``
-        particles (just made active: no held rate yet)."""
-        src = state.phase == Phase.FLUID
-        lit = getattr(self, "lit", None)
-        if lit is not None and lit.shape[0] == src.shape[0]:
-            src = src | lit
-        near = gather_nb(src, self.nb).any(1) | src.index_select(0, self.rows)
-        if fresh is not None:
-            near = near | fresh.index_select(0, self.rows)
-        return torch.nonzero(near).squeeze(1)
 
     def beam_power(self, state: ParticleState, t: float, rows: torch.Tensor) -> torch.Tensor:
         """Power (W) each particle absorbs from all beams; only ``rows`` absorb or shadow
@@ -444,10 +437,11 @@ class Conduction:
 
     def add_particles(self, new: ParticleState):
         """Extend the per-particle arrays for particles appended to the state."""
-        self.q_cond = None
         self.k = torch.cat([self.k, torch.full((new.n,), self.prm.conductivity, dtype=self.k.dtype,
                                                device=self.k.device)])
         self.T_set = torch.cat([self.T_set, new.T])
+        if self.steady is not None:  # not at the table's positions: steady from the next build
+            self.steady = torch.cat([self.steady, torch.zeros(new.n, dtype=torch.bool, device=self.steady.device)])
         for name in ("_zeta", "_area", "normal"):  # kept to length until the forced rebuild
             v = getattr(self, name, None)
             if v is not None:

@@ -1,0 +1,104 @@
+"""The deposition step against a reference commit (``python scripts/bench.py --deposition``).
+
+Both codes are measured one after the other, 1 thread, each in its own process
+(``scripts/bench_deposition_driver.py``): the reference commit (default b14e316) is checked out into a
+temporary git worktree and removed afterwards. States:
+
+- **preview, t = 0.03 s**: ``cases/perpendicular_350W --preview`` run to t = 0.03 s by each
+  code itself (the same case at the same process time: melt, fed wire, the active set), its
+  checkpoint cached under ``~/.cache/torchsph-bench/<commit>`` (the working tree's by a hash of
+  its diff); then 5 warm-up steps and ``--steps`` timed steps.
+- **full, first steps**: ``cases/perpendicular_350W`` at dx = 0.1 mm (733 600 particles) built
+  afresh, steps 2..11 counted for host syncs, then ``--full-steps`` timed steps.
+
+Columns: ms per step over the timed steps (rebuilds included), the median plain step, the
+extra cost of a step that rebuilds the neighbour list, particle-steps/s, the process's peak
+RSS, host synchronisations per step (without and with a rebuild; :mod:`torchsph.syncs`), and
+the reference's time over this code's.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DRIVER = ROOT / "scripts" / "bench_deposition_driver.py"
+CACHE = Path(os.environ.get("TORCHSPH_BENCH_CACHE", Path.home() / ".cache" / "torchsph-bench"))
+
+
+def git(*args, cwd=ROOT) -> str:
+    return subprocess.run(["git", *args], cwd=cwd, check=True, capture_output=True, text=True).stdout.strip()
+
+
+def tree_key(tree: Path) -> str:
+    """The commit, plus a hash of the uncommitted changes to the code and the cases."""
+    head = git("rev-parse", "--short=12", "HEAD", cwd=tree)
+    diff = git("diff", "HEAD", "--", "torchsph", "parallel", "cases", cwd=tree)
+    return head + ("-" + hashlib.sha256(diff.encode()).hexdigest()[:8] if diff else "")
+
+
+def env1():
+    return {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def preview_checkpoint(tree: Path, t: float) -> Path:
+    out = CACHE / tree_key(tree) / f"preview_t{t:g}"
+    ck = out / "checkpoint.pt"
+    if not ck.exists():
+        print(f"# {tree_key(tree)}: running the preview to t = {t:g} s for its state (cached in {out})", flush=True)
+        subprocess.run([sys.executable, "-m", "torchsph", "cases/perpendicular_350W", "--preview", "--t-end",
+                        str(t), "--quiet", "--out", str(out)], cwd=tree, env=env1(), check=True)
+    return ck
+
+
+def measure(tree: Path, what: str, steps: int, checkpoint: Path | None = None) -> dict:
+    cmd = [sys.executable, str(DRIVER), "--tree", str(tree), what, "--steps", str(steps)]
+    if checkpoint is not None:
+        cmd += ["--checkpoint", str(checkpoint)]
+    r = subprocess.run(cmd, env=env1(), check=True, capture_output=True, text=True)
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def fmt(v, spec):
+    return "-" if v is None else format(v, spec)
+
+
+def row(state, code, r, ref=None):
+    ratio = f"{ref['ms_per_step'] / r['ms_per_step']:.2f}x" if ref else "1 (ref)"
+    return (f"| {state} | {code} | {r['particles']} | {r['steps']} | {r['ms_per_step']:.1f} | "
+            f"{r['ms_plain_step']:.1f} | {r['rebuilds']} | {fmt(r['rebuild_ms'], '.0f')} | "
+            f"{r['particle_steps_per_s']:.3g} | {r['peak_rss_GB']:.2f} | {fmt(r['syncs_per_plain_step'], '.0f')} | "
+            f"{fmt(r['syncs_per_rebuild_step'], '.0f')} | {ratio} |")
+
+
+def run(ref: str, steps: int, full_steps: int, states=("preview", "full"), t_state: float = 0.03):
+    head = tree_key(ROOT)
+    print(f"# deposition step: this tree ({head}) against {ref}, 1 thread; "
+          f"preview state at t = {t_state:g} s, {steps} steps; full scene's first {full_steps} steps")
+    with tempfile.TemporaryDirectory(prefix="torchsph-ref-") as tmp:
+        wt = Path(tmp) / "ref"
+        git("worktree", "add", "--detach", str(wt), ref)
+        try:
+            results = {}
+            for state in states:
+                for name, tree in (("ref", wt), ("this", ROOT)):
+                    if state == "preview":
+                        results[state, name] = measure(tree, "preview", steps, preview_checkpoint(tree, t_state))
+                    else:
+                        results[state, name] = measure(tree, "full", full_steps)
+                    print(f"# {state} {name}: {json.dumps(results[state, name])}", flush=True)
+        finally:
+            git("worktree", "remove", "--force", str(wt))
+    print("| state | code | particles | steps | ms/step | plain step ms | rebuilds | rebuild ms | "
+          "particle-steps/s | peak RSS GB | syncs/step | syncs/rebuild step | speed-up |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for state in states:
+        ref_r = results[state, "ref"]
+        print(row(state, ref, ref_r))
+        print(row(state, head, results[state, "this"], ref_r))
+    return results

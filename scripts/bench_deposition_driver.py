@@ -1,0 +1,112 @@
+"""One measurement of ``scripts/bench.py --deposition`` in one process, on the code of the
+tree ``--tree`` (this repository, or a reference commit's worktree). Prints one JSON line.
+
+    python scripts/bench_deposition_driver.py --tree DIR preview --checkpoint CK [--steps N]
+    python scripts/bench_deposition_driver.py --tree DIR full [--steps N]
+
+It uses only what every version since b14e316 offers (``load_case``, ``make_simulation``,
+``simulation_from_run``, ``run_steps``) and counts host synchronisations with this
+repository's :mod:`torchsph.syncs`, loaded by file path (so the reference code is counted
+the same way). One thread.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import resource
+import statistics
+import sys
+import time
+import warnings
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parents[1]
+
+
+def load_counter():
+    spec = importlib.util.spec_from_file_location("_bench_syncs", HERE / "torchsph" / "syncs.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.SyncCounter
+
+
+def timed_steps(sim, run_steps, n):
+    """Per-step wall times and whether each step rebuilt the neighbour list."""
+    out = []
+    for _ in range(n):
+        b = sim.nl.n_builds
+        t = time.perf_counter()
+        run_steps(sim, steps=1)
+        out.append((time.perf_counter() - t, sim.nl.n_builds > b))
+    return out
+
+
+def summary(sim, times, setup_s, syncs_plain, syncs_rebuild, n0):
+    plain = [t for t, r in times if not r]
+    reb = [t for t, r in times if r]
+    med = statistics.median(plain) if plain else float("nan")
+    total = sum(t for t, _ in times)
+    return {
+        "particles": n0, "steps": len(times), "ms_per_step": 1e3 * total / len(times),
+        "ms_plain_step": 1e3 * med,
+        "rebuilds": len(reb),
+        "rebuild_ms": 1e3 * (statistics.mean(reb) - med) if reb else None,
+        "particle_steps_per_s": n0 * len(times) / total,
+        "peak_rss_GB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+        "syncs_per_plain_step": syncs_plain, "syncs_per_rebuild_step": syncs_rebuild,
+        "setup_s": setup_s, "t": sim.t,
+    }
+
+
+def count_syncs(sim, run_steps, Counter, steps=10):
+    """Mean syncs over ``steps`` steps, split into steps without and with a rebuild."""
+    plain, reb = [], []
+    for _ in range(steps):
+        b = sim.nl.n_builds
+        with Counter() as c:
+            run_steps(sim, steps=1)
+        (reb if sim.nl.n_builds > b else plain).append(c.total)
+    m = lambda v: statistics.mean(v) if v else None  # noqa: E731
+    return m(plain), m(reb)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--tree", type=Path, required=True)
+    ap.add_argument("what", choices=("preview", "full"))
+    ap.add_argument("--checkpoint", type=Path, default=None)
+    ap.add_argument("--steps", type=int, default=100)
+    a = ap.parse_args()
+    os.environ["OMP_NUM_THREADS"] = "1"
+    sys.path.insert(0, str(a.tree.resolve()))
+    warnings.filterwarnings("ignore")
+    import torch
+
+    torch.set_num_threads(1)
+    from torchsph.config import load_case
+    from torchsph.runner import make_simulation, run_steps, simulation_from_run
+
+    Counter = load_counter()
+    t0 = time.perf_counter()
+    if a.what == "preview":
+        _, sim = simulation_from_run(a.checkpoint)
+    else:
+        _, cfg = load_case(a.tree / "cases" / "perpendicular_350W", [])
+        _, sim = make_simulation(cfg)
+    setup = time.perf_counter() - t0
+    n0 = sim.state.n
+    if a.what == "preview":  # warm up, then time; syncs counted on steps after the timed ones
+        run_steps(sim, steps=5)
+        times = timed_steps(sim, run_steps, a.steps)
+        sp, sr = count_syncs(sim, run_steps, Counter)
+    else:  # the first steps: count syncs on steps 2..11, time the rest
+        run_steps(sim, steps=1)
+        sp, sr = count_syncs(sim, run_steps, Counter)
+        times = timed_steps(sim, run_steps, a.steps)
+    print(json.dumps(summary(sim, times, setup, sp, sr, n0)))
+
+
+if __name__ == "__main__":
+    main()

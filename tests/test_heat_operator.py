@@ -1,0 +1,125 @@
+"""The conduction sum as a cached sparse operator (torchsph/heat_operator.py) against the
+plain Cleary-Monaghan pair sum over the neighbour table (thermal.conduction_pairs), at the
+same state: on a random cloud, through melting and refreezing between neighbour builds, and
+through a deposition run with melt, feed and partial rebuilds."""
+import torch
+
+from conftest import CASES
+from torchsph.config import load_case
+from torchsph.fluid import embed
+from torchsph.runner import make_simulation, run_steps
+from torchsph.state import Phase
+from torchsph.thermal import conduction_pairs
+
+from test_deposition import small
+from test_thermal import cloud_conduction
+
+
+def pair_sum(th, state, T):
+    q = conduction_pairs(state.x, th.wall_temperature(state, T), th.k, state.m, state.rho, th._zeta, th.rows,
+                         th.nb, th.kernel, th.h, th.domain)
+    return embed(th.rows, q, state.n)
+
+
+def checking(sim):
+    """Wrap the thermal model's heat rate: every evaluation is compared with the pair sum.
+    Returns the record {worst: max relative difference, evals, static_share (min), builds,
+    refrozen: evaluations with a particle solid again but not yet steady}."""
+    th = sim.thermal
+    rec = {"worst": 0.0, "evals": 0, "static_share": 1.0, "builds": 0, "refrozen": 0}
+    orig = th.heat_rate
+
+    def checked(state, T):
+        op = th.op
+        built = op.built
+        q = orig(state, T)
+        ref = pair_sum(th, state, T)
+        rec["worst"] = max(rec["worst"], float((q - ref).abs().max() / ref.abs().max()))
+        rec["evals"] += 1
+        rec["builds"] += not built
+        rec["static_share"] = min(rec["static_share"], op.n_static / max(op.pairs, 1))
+        rec["refrozen"] += bool(((state.phase == Phase.SOLID) & ~th.steady).any())
+        return q
+
+    th.heat_rate = checked
+    return rec
+
+
+def test_operator_equals_the_pair_sum_on_a_cloud():
+    """Random cloud, per-particle conductivity, one rigid body: every pair in the matrix."""
+    st, c = cloud_conduction()
+    c._zeta = c.zeta(st)
+    q = c.heat_rate(st, st.T)
+    ref = pair_sum(c, st, st.T)
+    assert float((q - ref).abs().max() / ref.abs().max()) < 1e-13
+    assert c.op.n_dynamic == 0 and c.op.n_static > 0
+
+
+def test_operator_through_melting_and_refreezing():
+    """A hot spot on a moving block melts and refreezes: particles that froze since the last
+    neighbour build are not at the build's distances (they flowed), so their pairs stay
+    evaluated every step until the next build. Equal to the pair sum at every step."""
+    _, cfg = load_case(CASES / "beam_plate", [
+        "scene.size_m=[3e-3, 3e-3, 1e-3]", "thermal.phase_change=true", "fluid.c0_m_s=2.0",
+        "fluid.viscosity_Pa_s=0.005", "scene.velocity_m_s=[0.015, 0.0, 0.0]", "run.t_end_s=0.02"])
+    cfg.pop("beam")
+    _, sim = make_simulation(cfg)
+    s = sim.state
+    hot = (s.x[:, 2] > -0.4e-3) & (s.x[:, 0].abs() < 0.3e-3) & (s.x[:, 1].abs() < 0.3e-3)
+    s.T = torch.where(hot, torch.full_like(s.T, 2500.0), s.T)
+    rec = checking(sim)
+    for _ in range(400):
+        run_steps(sim, steps=1)
+        if sim.n_fluid == 0:
+            break
+    assert sim.n_fluid == 0 and rec["refrozen"] > 0, rec
+    assert rec["worst"] < 1e-12, rec
+
+
+def test_operator_through_a_deposition_run():
+    """Melt, two moving bodies (wire and substrate), fed layers, partial neighbour rebuilds
+    with the active set, phase changes: equal to the pair sum at every step; the matrix holds
+    most pairs (what makes it cheap) and is built once per selection, not per step."""
+    cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3")
+    _, sim = make_simulation(cfg)
+    rec = checking(sim)
+    run_steps(sim, steps=250)
+    s = sim.state
+    assert int((s.phase == Phase.FLUID).sum()) > 0 and sim.feeder.n_fed >= 1 and sim.nl.n_partial > 0
+    assert rec["worst"] < 1e-12, rec
+    assert rec["static_share"] > 0.8, rec
+    assert rec["builds"] < 0.5 * rec["evals"], rec
+
+
+def test_restart_between_a_freeze_and_the_next_build_is_bit_for_bit(tmp_path):
+    """A checkpoint written while a refrozen particle is solid but not yet steady (it froze
+    since the last neighbour build, away from the build's positions): the restart rebuilds the
+    operator from the checkpoint (the build's positions and which particles are steady), so
+    K more steps equal the uninterrupted run's bit for bit."""
+    from torchsph import checkpoint as ckpt
+    from torchsph.runner import resume
+
+    _, cfg = load_case(CASES / "beam_plate", [
+        "scene.size_m=[3e-3, 3e-3, 1e-3]", "thermal.phase_change=true", "fluid.c0_m_s=2.0",
+        "fluid.viscosity_Pa_s=0.005", "scene.velocity_m_s=[0.015, 0.0, 0.0]", "run.t_end_s=0.02"])
+    cfg.pop("beam")
+    _, sim = make_simulation(cfg)
+    s = sim.state
+    hot = (s.x[:, 2] > -0.4e-3) & (s.x[:, 0].abs() < 0.3e-3) & (s.x[:, 1].abs() < 0.3e-3)
+    s.T = torch.where(hot, torch.full_like(s.T, 2500.0), s.T)
+    for _ in range(400):
+        run_steps(sim, steps=1)
+        st = sim.state
+        if bool(((st.phase == Phase.SOLID) & ~sim.thermal.steady).any()) and sim.n_fluid > 0:
+            break
+    else:
+        raise AssertionError("no particle froze between neighbour builds")
+    path = tmp_path / "checkpoint.pt"
+    ckpt.save(sim, path, ckpt.config_hash(cfg))
+    K = 30
+    run_steps(sim, steps=K)
+    _, other = make_simulation(cfg)
+    resume(other, path, cfg)
+    run_steps(other, steps=K)
+    for name in ("x", "v", "rho", "T", "phase", "body"):
+        assert torch.equal(getattr(sim.state, name), getattr(other.state, name)), name
