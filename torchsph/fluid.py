@@ -202,7 +202,16 @@ class WeaklyCompressibleFluid:
             self.mask_w = torch.gather(mw, 1, order).to(state.dtype)
 
     def _g(self, like: torch.Tensor) -> torch.Tensor:
-        return torch.as_tensor(self.prm.gravity, dtype=like.dtype, device=like.device)
+        return self._const(like)[0]
+
+    def _const(self, like: torch.Tensor):
+        """(gravity, gravity + body force) as tensors on ``like``'s device, made once."""
+        key = (like.dtype, str(like.device))
+        cache = self.__dict__.setdefault("_consts", {})
+        if key not in cache:
+            g = torch.as_tensor(self.prm.gravity, dtype=like.dtype, device=like.device)
+            cache[key] = (g, g + torch.as_tensor(self.prm.body_force, dtype=like.dtype, device=like.device))
+        return cache[key]
 
     # --- the right-hand side ----------------------------------------------
     def momentum(self, state: ParticleState, v_eval: torch.Tensor, terms: bool = False):
@@ -231,7 +240,7 @@ class WeaklyCompressibleFluid:
             dx_g, r_g = pair_geometry(x, self.rows_f[k:], self.nb_f[k:], self.domain, self.h)
             dx, dWr = torch.cat([dx, dx_g]), torch.cat([dWr, self.kernel.dwdr(r_g, self.h) / r_g])
         self._geom = (dx, dWr, state.rho)
-        body = g + torch.as_tensor(prm.body_force, dtype=x.dtype, device=x.device)
+        body = self._const(x)[1]
         a = embed(rows, a, n)
         zero = torch.zeros_like(a)
         if terms:

@@ -316,18 +316,22 @@ class Simulation:
             if self.thermal.losses.evaporation:
                 lim["evaporation"] = self.thermal.evaporation_limit(self.state)
                 lim["heating"] = self._heating_limit()
+        dev = [k for k, v in lim.items() if isinstance(v, torch.Tensor)]
+        if dev:  # the limits computed on the device: one read
+            lim.update(zip(dev, torch.stack([lim[k].reshape(()) for k in dev]).tolist()))
         lim = self.comm.merge_limits({k: v for k, v in lim.items() if math.isfinite(v)})
         return lim or {"none": math.inf}
 
-    def _heating_limit(self) -> float:
+    def _heating_limit(self):
         """0.1 c_p T / |dh/dt| over the non-wall particles: at most a 10 % temperature change
         per step. With evaporation on, a step that heats a surface particle far past T_v in
         one go meets a loss that is exponentially stiff there (a 1 200 W beam on the cube
-        produced a non-finite temperature on the second step at the thermal limit)."""
+        produced a non-finite temperature on the second step at the thermal limit). A 0-d
+        float64 tensor."""
         th = self.thermal
         rate = torch.where(th.wall_mask, torch.zeros_like(self.dTdt), self.dTdt.abs())
-        r = float((rate / (th.prm.specific_heat * self.state.T.clamp_min(1.0))).max())
-        return 0.1 / r if r > 0 else math.inf
+        r = (rate / (th.prm.specific_heat * self.state.T.clamp_min(1.0))).max().double()
+        return torch.where(r > 0, 0.1 / r, torch.full_like(r, math.inf))
 
     def choose_dt(self) -> tuple[float, str]:
         lim = self.limits()

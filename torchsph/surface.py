@@ -199,16 +199,16 @@ class SurfaceForces:
             return out
         return out, {k: embed(rows, v, n) for k, v in parts.items()}
 
-    def limit(self, state: ParticleState) -> float:
-        """Capillary time-step limit 0.25 sqrt(rho_min h^3 / (2 pi alpha_max)) (3.16, fixed)."""
+    def limit(self, state: ParticleState):
+        """Capillary time-step limit 0.25 sqrt(rho_min h^3 / (2 pi alpha_max)) (3.16, fixed),
+        a 0-d float64 tensor (read with the other limits at once), or inf without fluid."""
         if self.rows_f.numel() == 0:
             return math.inf
         T = state.T.index_select(0, self.rows_f)
-        amax = float(self.tension(T).max())
-        if amax <= 0:
-            return math.inf
-        rho_min = float(state.rho.index_select(0, self.rows_f).min())
-        return 0.25 * math.sqrt(rho_min * self.h**3 / (2.0 * math.pi * amax))
+        amax = self.tension(T).max().double()
+        rho_min = state.rho.index_select(0, self.rows_f).min().double()
+        lim = 0.25 * torch.sqrt(rho_min * self.h**3 / (2.0 * math.pi * amax))
+        return torch.where(amax > 0, lim, torch.full_like(lim, math.inf))
 
     def project_shift(self, shift: torch.Tensor) -> torch.Tensor:
         """Particle shifting on the free surface only along it: (I - n n) dr (Lind et al. 2012),

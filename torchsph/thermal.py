@@ -478,18 +478,19 @@ class Conduction:
     def to_temperature(self, H: torch.Tensor, guess: torch.Tensor | None = None) -> torch.Tensor:
         return temperature_from_enthalpy(H, self.prm, 0.0, guess)
 
-    def limit(self, state: ParticleState) -> float:
-        """Thermal time-step limit 0.125 rho c_p h^2 / k (3.17, fixed)."""
-        kmax = float(self.k.max())
-        if kmax <= 0:
-            return math.inf
-        return 0.125 * float(state.rho.min()) * self.prm.specific_heat * self.h**2 / kmax
+    def limit(self, state: ParticleState):
+        """Thermal time-step limit 0.125 rho c_p h^2 / k (3.17, fixed), a 0-d float64 tensor
+        (inf without conduction)."""
+        kmax = self.k.max().double()
+        lim = 0.125 * state.rho.min().double() * self.prm.specific_heat * self.h**2 / kmax
+        return torch.where(kmax > 0, lim, torch.full_like(lim, math.inf))
 
-    def evaporation_limit(self, state: ParticleState) -> float:
+    def evaporation_limit(self, state: ParticleState):
         """Time-step limit of the evaporation loss, which is stiff near and above T_v:
         0.5 m c_p / (A dq/dT), q = m_v [h_v + h(T)], dm_v/dT = m_v (C_T / T^2 - 1 / (2 T)),
         so that a surface particle's loss changes little over a step (explicit
-        integration of dT/dt = -lambda T is stable for lambda dt < 2; 0.5 keeps it accurate)."""
+        integration of dT/dt = -lambda T is stable for lambda dt < 2; 0.5 keeps it accurate).
+        A 0-d float64 tensor."""
         if self._area is None:
             self._area = self.surface_area(state)
         L = self.losses
@@ -499,8 +500,8 @@ class Conduction:
         dq = (mdot * (CT / T**2 - 0.5 / T) * (L.evaporation_heat + enthalpy(T, self.prm, 0.0))
               + mdot * self.prm.specific_heat)
         lam = self._area * dq / (state.m * self.prm.specific_heat)
-        lmax = float(lam.max())
-        return 0.5 / lmax if lmax > 0 else math.inf
+        lmax = lam.max().double()
+        return torch.where(lmax > 0, 0.5 / lmax, torch.full_like(lmax, math.inf))
 
     @staticmethod
     def energy(state: ParticleState, prm: ThermalParams, T_ref: float, owned=None) -> float:
