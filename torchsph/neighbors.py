@@ -264,21 +264,27 @@ class VerletList:
         self.static: torch.Tensor | None = None  # rows whose mutual pairs the table holds (one body)
         self.x_full: torch.Tensor | None = None  # positions at the last full build
 
-    def needs_rebuild(self, x: torch.Tensor) -> bool:
+    def needs_rebuild(self, x: torch.Tensor, rows: torch.Tensor | None = None) -> bool:
+        """Whether some particle moved more than skin/2 since the last build; with ``rows``,
+        only those are checked (the caller knows the others move with one of them)."""
         if self.x_ref is None or self.x_ref.shape != x.shape:
             return True
-        d = self.domain.minimum_image(x - self.x_ref)
+        if rows is None:
+            d = self.domain.minimum_image(x - self.x_ref)
+        else:
+            d = self.domain.minimum_image(x.index_select(0, rows) - self.x_ref.index_select(0, rows))
         if self.skin <= 0:  # no skin: rebuild whenever anything moved
             return bool((d != 0).any())
         return bool((d * d).sum(-1).max() > (0.5 * self.skin) ** 2)
 
-    def update(self, x: torch.Tensor, force: bool = False, subset=None, rigid=None) -> bool:
+    def update(self, x: torch.Tensor, force: bool = False, subset=None, rigid=None, rows=None) -> bool:
         """Rebuild if needed; returns True when the pairs changed. ``subset`` (a callable
         returning a mask, evaluated only when rebuilding) restricts the search to those
         particles: the others get empty rows and appear in no row. ``rigid`` (a callable
         returning the mask of the particles of one rigid body, evaluated only when
-        rebuilding) allows a partial rebuild (see the class)."""
-        if force or self.needs_rebuild(x):
+        rebuilding) allows a partial rebuild (see the class). ``rows``: the particles
+        whose displacement decides (:meth:`needs_rebuild`; None: all)."""
+        if force or self.needs_rebuild(x, rows):
             work = subset() if subset is not None else None
             if work is not None and bool(work.all()):
                 work = None

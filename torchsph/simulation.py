@@ -233,14 +233,34 @@ class Simulation:
         subset = self._work_set if self.active_set is not None else None
         force = force or self._stale
         if not force and self.comm.size > 1:  # all processes rebuild at the same steps
-            force = self.comm.any(self.nl.needs_rebuild(self.state.x))
+            force = self.comm.any(self.nl.needs_rebuild(self.state.x, self._moving_rows()))
             if not force:
                 return
         rigid = self._rigid_body if self.partial_rebuild else None
-        if self.nl.update(self.state.x, force=force, subset=subset, rigid=rigid):
+        if self.nl.update(self.state.x, force=force, subset=subset, rigid=rigid, rows=self._moving_rows()):
             self._stale = False
             self._rebuilt = True
             self._select(new_table=True)
+            self._moving_rows()  # for the new work set, at the rebuild
+
+    def _moving_rows(self) -> torch.Tensor | None:
+        """The particles whose displacement decides a neighbour rebuild: with an active set,
+        its work set, and of the cold solid left out one per rigid body (they move with it);
+        None (all) without one. Made once per work set."""
+        a = self.active_set
+        if a is None or a.work is None or a.work.shape[0] != self.state.n:
+            return None
+        if getattr(self, "_moving_for", None) is not a.work:
+            st = self.state
+            cold = ~a.work & (st.phase == Phase.SOLID) & (st.body > 0)
+            idx = torch.arange(st.n, device=st.device)
+            big = torch.iinfo(torch.long).max
+            first = torch.full((self.body_velocity.shape[0],), big, dtype=torch.long, device=st.device).scatter_reduce(
+                0, st.body, torch.where(cold, idx, torch.full_like(idx, big)), "amin")
+            keep = ~cold
+            keep.index_fill_(0, first[first < big], True)
+            self._moving, self._moving_for = torch.nonzero(keep).squeeze(1), a.work
+        return self._moving
 
     def _rigid_body(self) -> torch.Tensor | None:
         """Mask of the largest rigid group: the solid particles of one body, or the walls
@@ -287,15 +307,21 @@ class Simulation:
             rho = self.state.rho if own is None else self.state.rho[own]
             vals = [0.0, 0.0, float(rho.min()) if rho.numel() else float("inf"), 0.0]
             return dict(zip(("vmax", "amax", "rho_min", "compression"), self.comm.reduce_measure(vals)))
-        fmask = self.fluid_mask if own is None else self.fluid_mask & own
-        fm = fmask.unsqueeze(-1)
-        v = torch.where(fm, self.state.v, torch.zeros_like(self.state.v))
-        a = torch.where(fm, self.dvdt, torch.zeros_like(self.dvdt))
-        rho_f = torch.where(fmask, self.state.rho, torch.full_like(self.state.rho, float("inf")))
-        comp = torch.where(fmask, (self.state.rho / self.fluid.prm.rho0 - 1.0).abs(),
-                           torch.zeros_like(self.state.rho))
-        vals = torch.stack([(v * v).sum(-1).max().sqrt(), (a * a).sum(-1).max().sqrt(),
-                            rho_f.min(), comp.max()]).tolist()
+        rows = self.fluid.rows_f  # every fluid particle (and, decomposed, ghosts: masked)
+        mine = None if own is None else own.index_select(0, rows)
+        st = self.state
+        v, a = st.v.index_select(0, rows), self.dvdt.index_select(0, rows)
+        rho = st.rho.index_select(0, rows)
+        comp = (rho / self.fluid.prm.rho0 - 1.0).abs()
+        v2, a2 = (v * v).sum(-1), (a * a).sum(-1)
+        if mine is not None:
+            v2, a2 = torch.where(mine, v2, torch.zeros_like(v2)), torch.where(mine, a2, torch.zeros_like(a2))
+            rho = torch.where(mine, rho, torch.full_like(rho, float("inf")))
+            comp = torch.where(mine, comp, torch.zeros_like(comp))
+        z = torch.zeros((1,), dtype=rho.dtype, device=rho.device)  # (a process may own no fluid)
+        inf = torch.full((1,), float("inf"), dtype=rho.dtype, device=rho.device)
+        vals = torch.stack([torch.cat([v2, z]).max().sqrt(), torch.cat([a2, z]).max().sqrt(),
+                            torch.cat([rho, inf]).min(), torch.cat([comp, z]).max()]).tolist()
         return dict(zip(("vmax", "amax", "rho_min", "compression"), self.comm.reduce_measure(vals)))
 
     def limits(self) -> dict[str, float]:
@@ -328,9 +354,11 @@ class Simulation:
         one go meets a loss that is exponentially stiff there (a 1 200 W beam on the cube
         produced a non-finite temperature on the second step at the thermal limit). A 0-d
         float64 tensor."""
-        th = self.thermal
-        rate = torch.where(th.wall_mask, torch.zeros_like(self.dTdt), self.dTdt.abs())
-        r = (rate / (th.prm.specific_heat * self.state.T.clamp_min(1.0))).max().double()
+        th = self.thermal  # dh/dt is 0 off the rows (walls and the cold solid left out)
+        if not th.rows.numel():
+            return math.inf
+        rate = self.dTdt.index_select(0, th.rows).abs()
+        r = (rate / (th.prm.specific_heat * self.state.T.index_select(0, th.rows).clamp_min(1.0))).max().double()
         return torch.where(r > 0, 0.1 / r, torch.full_like(r, math.inf))
 
     def choose_dt(self) -> tuple[float, str]:
@@ -439,7 +467,7 @@ class Simulation:
             rows = th.rows if th.rows is rows0 else torch.unique(torch.cat([rows0, th.rows]))
             s.T = s.T.index_copy(0, rows, th.to_temperature(  # 3b
                 H_half.index_select(0, rows) + 0.5 * dt * self.dTdt.index_select(0, rows), s.T.index_select(0, rows)))
-            s.T_peak = torch.maximum(s.T_peak, s.T)
+            s.T_peak = s.T_peak.index_copy(0, rows, torch.maximum(s.T_peak.index_select(0, rows), s.T.index_select(0, rows)))
         self.t += dt
         self.step += 1
         if self.phase_change is not None:
@@ -565,7 +593,7 @@ class Simulation:
         kept-rows mask or None). ``H_half``: the specific enthalpy at the half step, what the
         particles hold in the energy balance at this point of the step (the flows to them are
         booked up to it)."""
-        due = self._stale or self.nl.needs_rebuild(self.state.x)
+        due = self._stale or self.nl.needs_rebuild(self.state.x, self._moving_rows())
         if self.comm.size > 1:
             due = self.comm.any(due)
         if not due:

@@ -271,6 +271,9 @@ class Conduction:
             op.table = nb
         op.select(self.steady)
         self.rows_w = torch.nonzero(wall if work is None else wall & work).squeeze(1)
+        rest = torch.ones(state.n, dtype=torch.bool, device=state.rho.device)
+        rest.index_fill_(0, self.rows, False).index_fill_(0, self.rows_w, False)
+        self._rho_rest = torch.where(rest, state.rho, torch.full_like(state.rho, math.inf)).min()
         if not hasattr(self, "T_set"):
             self.T_set = state.T.clone()  # the walls' prescribed temperatures
         if self.rows_w.numel():
@@ -343,13 +346,16 @@ class Conduction:
 
     def heat_rate(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
         """div(k grad T) per unit volume (W/m^3) at temperatures ``T``; 0 on walls."""
+        return embed(self.rows, self.heat_rate_rows(state, T), state.n)
+
+    def heat_rate_rows(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
+        """div(k grad T) (W/m^3) on ``rows`` only."""
         T = self.wall_temperature(state, T)
         if self._zeta is None:
             self._zeta = self.zeta(state)
         if not self.op.built:  # once per selection, when zeta is known
             self.op.build(self.k, self._zeta)
-        q = self.op.apply(state.x, T, self.k, state.m / state.rho, self._zeta)
-        return embed(self.rows, q, state.n)
+        return self.op.apply(state.x, T, self.k, state.m / state.rho, self._zeta)
 
     def zeta(self, state: ParticleState) -> torch.Tensor:
         """Per-particle Laplacian normalisation, used where it lies in [0.95, 1.05] (else 1): it corrects the
@@ -374,22 +380,25 @@ class Conduction:
         however narrow the mushy interval is compared with one step's temperature change.
         Conduction is evaluated on every row at every step (one sparse product and the
         moving pairs: :mod:`torchsph.heat_operator`)."""
-        q = self.heat_rate(state, T) * (state.m / state.rho)
-        parts = {"conduction": q}
+        rows, n = self.rows, state.n  # every term on the rows only (the others get none)
+        parts = {"conduction": self.heat_rate_rows(state, T) * (state.m / state.rho).index_select(0, rows)}
         if self.beams:
-            parts["beam"] = self.beam_power(state, t, self.rows)
-            self.lit = parts["beam"] > 0
-            self.n_lit = self.lit.sum()  # a tensor: the plan statistics sum it without a sync per step
+            parts["beam"] = self.beam_power_rows(state, t, rows)
+            lit = parts["beam"] > 0
+            self.lit = torch.zeros(n, dtype=torch.bool, device=lit.device).index_copy_(0, rows, lit)
+            self.n_lit = lit.sum()  # a tensor: the plan statistics sum it without a sync per step
         if self.losses.active:
             if self._area is None:
                 self._area = self.surface_area(state)
-            fl = self.losses.flux(T, lambda T_: enthalpy(T_, self.prm, 0.0))
+            fl = self.losses.flux(T.index_select(0, rows), lambda T_: enthalpy(T_, self.prm, 0.0))
+            area = self._area.index_select(0, rows)
             for name, f in fl.items():
-                parts[name] = -f * self._area
-        P = sum(parts.values())
+                parts[name] = -f * area
+        P = embed(rows, sum(parts.values()), n)
         if per_particle:
-            return P, parts
+            return P, {k: embed(rows, v, n) for k, v in parts.items()}
         own = getattr(self, "owned", None)  # a decomposed run books its own particles only
+        own = None if own is None else own.index_select(0, rows)
         totals = {k: (v if own is None else torch.where(own, v, torch.zeros_like(v))).sum()
                   for k, v in parts.items()}
         totals.setdefault("beam", torch.zeros((), dtype=T.dtype, device=T.device))
@@ -398,13 +407,16 @@ class Conduction:
     def beam_power(self, state: ParticleState, t: float, rows: torch.Tensor) -> torch.Tensor:
         """Power (W) each particle absorbs from all beams; only ``rows`` absorb or shadow
         (with an active set, the beams' footprints are in it: lit particles seed it)."""
+        return embed(rows, self.beam_power_rows(state, t, rows), state.n)
+
+    def beam_power_rows(self, state: ParticleState, t: float, rows: torch.Tensor) -> torch.Tensor:
+        """:meth:`beam_power` on ``rows`` only."""
         comm = getattr(self, "comm", None)
         if comm is not None and comm.size > 1:
             return self._beam_power_decomposed(state, t, rows, comm)
         x = state.x.index_select(0, rows)
         material = torch.ones(rows.numel(), dtype=torch.bool, device=x.device)
-        P = sum(beam_power(x, material, b, t, self.dx) for b in self.beams)
-        return embed(rows, P, state.n)
+        return sum(beam_power(x, material, b, t, self.dx) for b in self.beams)
 
     def _beam_power_decomposed(self, state: ParticleState, t: float, rows: torch.Tensor, comm):
         """Shadowing is global: the candidates of all processes (their own particles inside
@@ -427,7 +439,7 @@ class Conduction:
             pos = torch.searchsorted(gid, ids).clamp_max(gid.numel() - 1)
             hit = cyl & (gid.index_select(0, pos) == ids)
             P = torch.where(hit, P_g.index_select(0, pos), P)
-        return embed(rows, P, state.n)
+        return P
 
     def lit_mask(self, state: ParticleState, t: float) -> torch.Tensor | None:
         """Particles any beam lights at time t (all non-wall particles considered)."""
@@ -482,8 +494,17 @@ class Conduction:
         """Thermal time-step limit 0.125 rho c_p h^2 / k (3.17, fixed), a 0-d float64 tensor
         (inf without conduction)."""
         kmax = self.k.max().double()
-        lim = 0.125 * state.rho.min().double() * self.prm.specific_heat * self.h**2 / kmax
+        lim = 0.125 * self.rho_min(state).double() * self.prm.specific_heat * self.h**2 / kmax
         return torch.where(kmax > 0, lim, torch.full_like(lim, math.inf))
+
+    def rho_min(self, state: ParticleState) -> torch.Tensor:
+        """The smallest density of all particles, reading only the rows, the walls among them
+        and, for the rest (cold solid left out, whose density does not change), the value
+        taken at the pair selection."""
+        r = self._rho_rest
+        if self.rows.numel():
+            r = torch.minimum(state.rho.index_select(0, self.rows).min(), r)
+        return r if not self.rows_w.numel() else torch.minimum(r, state.rho.index_select(0, self.rows_w).min())
 
     def evaporation_limit(self, state: ParticleState):
         """Time-step limit of the evaporation loss, which is stiff near and above T_v:
@@ -494,12 +515,15 @@ class Conduction:
         if self._area is None:
             self._area = self.surface_area(state)
         L = self.losses
-        T = state.T
+        rows = self.rows  # the others have no surface area
+        if not rows.numel():
+            return math.inf
+        T = state.T.index_select(0, rows)
         mdot = L.evaporation_flux(T)
         CT = L.evaporation_heat * L.molar_mass / R_GAS
         dq = (mdot * (CT / T**2 - 0.5 / T) * (L.evaporation_heat + enthalpy(T, self.prm, 0.0))
               + mdot * self.prm.specific_heat)
-        lam = self._area * dq / (state.m * self.prm.specific_heat)
+        lam = self._area.index_select(0, rows) * dq / (state.m.index_select(0, rows) * self.prm.specific_heat)
         lmax = lam.max().double()
         return torch.where(lmax > 0, 0.5 / lmax, torch.full_like(lmax, math.inf))
 
