@@ -152,7 +152,7 @@ def snapshot(sim) -> dict:
         d["active"] = {k: _cpu(v) for k, v in sim.active_set.to_dict().items()}
     th = sim.thermal
     if th is not None:
-        d["thermal"] = {"T_set": _cpu(th.T_set), "steady": _cpu(th.steady), "zeta": _cpu(th._zeta), "area": _cpu(th._area),
+        d["thermal"] = {"T_set": _cpu(th.T_set), "steady": _cpu(th.steady), "x_op": _cpu(th.x_op), "zeta": _cpu(th._zeta), "area": _cpu(th._area),
                         "normal": _cpu(getattr(th, "normal", None)), "lit": _cpu(getattr(th, "lit", None)),
                         "zeta_ok": _cpu(th._zeta_ok), "area_ok": _cpu(th._area_ok),
                         "zeta_prev": _cpu(th._zeta_prev), "area_prev": _cpu(th._area_prev),
@@ -273,7 +273,7 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     caches = {}
     if th is not None and "thermal" in d:
         c = d["thermal"]
-        names = {"lit": "lit", "T_set": "T_set", "steady": "steady", "zeta": "_zeta", "area": "_area",
+        names = {"lit": "lit", "T_set": "T_set", "steady": "steady", "x_op": "x_op", "zeta": "_zeta", "area": "_area",
                  "zeta_ok": "_zeta_ok", "area_ok": "_area_ok", "normal": "normal", "zeta_prev": "_zeta_prev",
                  "area_prev": "_area_prev", "normal_prev": "_normal_prev"}
         caches.update({f"th.{a}": to(c[k]) for k, a in names.items() if c.get(k) is not None})

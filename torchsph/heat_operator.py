@@ -52,74 +52,100 @@ def material_factor(k_i, k_j, z_i, z_j):
 
 
 class ConductionOperator:
-    """Conduction over the rows ``rows`` of a neighbour table. Per table, the pairs as a flat
-    list (row-major), and among them the rigid ones: both particles *steady* (solid, with no
-    phase change since the table was built, so at the build's distance from each other) and
-    of one body, inside the kernel's support (a rigid pair beyond it never contributes),
-    with their kernel factor at the build's positions. Per pair selection (a build, a phase
-    change) the rigid pairs whose particles are both still steady form a constant sparse
-    matrix (:meth:`build`, once zeta is known); every other pair is evaluated every step.
-    ``apply`` returns (div k grad T) on ``rows`` (W/m^3)."""
+    """Conduction over the rows ``rows`` (positions of the conducting particles).
 
-    def __init__(self, rows: torch.Tensor, nb: torch.Tensor, mask: torch.Tensor, x_ref: torch.Tensor,
+    The matrix G holds the *rigid* pairs: both particles steady (solid with no phase change
+    since G was built, so at the distance they had then: ``x_op``, the positions at G's
+    build) and of one body, inside the kernel's support (a rigid pair beyond it never
+    contributes). Its entries are sorted by (row, column), so any later build from the same
+    positions (after a restart, from another neighbour table) is the same matrix bit for
+    bit. G lives as long as the rows do: a neighbour rebuild that keeps the active set keeps
+    it, and only re-lists the other pairs (:meth:`select`); a particle that melts leaves it
+    (its entries are zeroed when the values are next made, :meth:`build`, with the current
+    zeta) and its pairs are evaluated every step from then on."""
+
+    def __init__(self, rows: torch.Tensor, nb: torch.Tensor, mask: torch.Tensor, x_op: torch.Tensor,
                  steady: torch.Tensor, body: torch.Tensor, kernel: Kernel, h: float, domain: Domain):
-        """``nb``, ``mask``: the table of ``rows``; ``x_ref``: the positions it was built at;
-        ``steady`` (N,): solid particles that have not changed phase since then; ``body`` (N,)."""
+        """``nb``, ``mask``: the table of ``rows``; ``x_op``, ``steady``: see the class."""
         self.rows, self.kernel, self.h, self.domain = rows, kernel, h, domain
-        self.table = None  # the whole neighbour table the rows came from (compared by identity)
+        n, dev = steady.shape[0], rows.device
         R, kk = nb.shape
         at = torch.nonzero((mask & (nb != rows.unsqueeze(1))).reshape(-1)).squeeze(1)  # row-major
-        self.ri = torch.div(at, kk, rounding_mode="floor")
-        self.j = nb.reshape(-1).index_select(0, at)
-        self.i = rows.index_select(0, self.ri)
-        i, j = self.i, self.j
+        ri = torch.div(at, kk, rounding_mode="floor")
+        j = nb.reshape(-1).index_select(0, at)
+        i = rows.index_select(0, ri)
         rigid = steady.index_select(0, i) & steady.index_select(0, j) & (body.index_select(0, i) == body.index_select(0, j))
         c = torch.nonzero(rigid).squeeze(1)
-        d = domain.minimum_image(x_ref.index_select(0, i.index_select(0, c)) - x_ref.index_select(0, j.index_select(0, c)))
+        ri, i, j = ri.index_select(0, c), i.index_select(0, c), j.index_select(0, c)
+        d = domain.minimum_image(x_op.index_select(0, i) - x_op.index_select(0, j))
         r2 = dot(d, d)
-        near = r2 < kernel.radius(h) ** 2
-        inside, outside = torch.nonzero(near).squeeze(1), torch.nonzero(~near).squeeze(1)
-        r = torch.sqrt(r2.index_select(0, inside)).clamp_min(1e-12 * h)
-        self.rigid, self.f_ref = c.index_select(0, inside), kernel.dwdr(r, h) / r  # positions in the list
-        self.beyond = c.index_select(0, outside)  # rigid pairs outside the support: never evaluated while rigid
-        self.G = None
-        self.n_static = self.n_dynamic = 0
-
-    def same_table(self, rows: torch.Tensor, nb: torch.Tensor) -> bool:
-        return nb is self.table and rows.shape == self.rows.shape and bool(torch.equal(rows, self.rows))
-
-    def select(self, steady: torch.Tensor):
-        """The split for the current phases: rigid pairs with both particles still steady
-        -> the matrix; every other pair (rigid ones beyond the support excepted, while both
-        stay steady) -> evaluated every step."""
-        keep = steady.index_select(0, self.i.index_select(0, self.rigid)) & steady.index_select(
-            0, self.j.index_select(0, self.rigid))
-        self.s = torch.nonzero(keep).squeeze(1)  # positions in self.rigid
-        skip = torch.zeros(self.i.numel(), dtype=torch.bool, device=self.i.device)
-        skip.index_fill_(0, self.rigid.index_select(0, self.s), True)
-        far = self.beyond
-        if far.numel():
-            still = steady.index_select(0, self.i.index_select(0, far)) & steady.index_select(0, self.j.index_select(0, far))
-            skip.index_fill_(0, far[still], True)
-        m = torch.nonzero(~skip).squeeze(1)
-        self.d_row, self.d_i, self.d_j = self.ri.index_select(0, m), self.i.index_select(0, m), self.j.index_select(0, m)
-        self.n_static, self.n_dynamic = int(self.s.numel()), int(m.numel())
+        inside = torch.nonzero(r2 < kernel.radius(h) ** 2).squeeze(1)
+        order = torch.argsort(ri.index_select(0, inside) * n + j.index_select(0, inside))  # canonical
+        keep = inside.index_select(0, order)
+        self.g_row, self.g_i, self.g_j = ri.index_select(0, keep), i.index_select(0, keep), j.index_select(0, keep)
+        r = torch.sqrt(r2.index_select(0, keep)).clamp_min(1e-12 * h)
+        self.g_f = kernel.dwdr(r, h) / r
+        self.crow = torch.zeros(R + 1, dtype=torch.long, device=dev)
+        self.crow[1:] = torch.cumsum(torch.bincount(self.g_row, minlength=R), 0)
+        self.row_of = torch.full((n,), -1, dtype=torch.long, device=dev).index_copy_(
+            0, rows, torch.arange(R, device=dev))
+        # the body most rigid rows belong to: its steady particles' pairs with each other are
+        # all in G, so only the other particles' table rows are read for the moving pairs
+        counts = torch.bincount(body.index_select(0, rows)[steady.index_select(0, rows)])
+        self.main_body = int(counts.argmax()) if counts.numel() else -1
+        self.n_static = int(self.g_row.numel())
+        self.n_dynamic = 0
         self.G = None
         self.built = False
 
+    def same_rows(self, rows: torch.Tensor, n: int) -> bool:
+        return (rows.shape == self.rows.shape and self.row_of.shape[0] == n
+                and bool(torch.equal(rows, self.rows)))
+
+    def select(self, nb: torch.Tensor, mask: torch.Tensor, steady: torch.Tensor, body: torch.Tensor,
+               work: torch.Tensor | None):
+        """The pairs evaluated every step, from the whole table ``nb``/``mask``: every pair
+        with a particle that is not steady, or of two bodies. They are found from the table
+        rows of the particles outside the main body or not steady (in the work set), each
+        pair once, as it is or transposed (the table is symmetric); G's values are made
+        again at the next evaluation (zeta and the steady set may have changed)."""
+        cand = ~steady | (body != self.main_body)
+        if work is not None:
+            cand = cand & work
+        cidx = torch.nonzero(cand).squeeze(1)
+        nbc = nb.index_select(0, cidx)
+        kk = nbc.shape[1]
+        mc = mask.index_select(0, cidx) & (nbc != cidx.unsqueeze(1))
+        ent = torch.nonzero(mc.reshape(-1)).squeeze(1)
+        ci = cidx.index_select(0, torch.div(ent, kk, rounding_mode="floor"))
+        cj = nbc.reshape(-1).index_select(0, ent)
+        rigid = steady.index_select(0, ci) & steady.index_select(0, cj) & (body.index_select(0, ci) == body.index_select(0, cj))
+        mv = torch.nonzero(~rigid).squeeze(1)
+        ci, cj = ci.index_select(0, mv), cj.index_select(0, mv)
+        r_direct, r_trans = self.row_of.index_select(0, ci), self.row_of.index_select(0, cj)
+        a = torch.nonzero(r_direct >= 0).squeeze(1)
+        b = torch.nonzero((r_trans >= 0) & ~cand.index_select(0, cj)).squeeze(1)
+        self.d_row = torch.cat([r_direct.index_select(0, a), r_trans.index_select(0, b)])
+        self.d_i = torch.cat([ci.index_select(0, a), cj.index_select(0, b)])
+        self.d_j = torch.cat([cj.index_select(0, a), ci.index_select(0, b)])
+        self.n_dynamic = int(self.d_row.numel())
+        self.steady = steady
+        self.built = False
+
     def build(self, k, zeta):
-        """G: row r holds g_ij at column j for the rigid pairs of row r."""
-        p = self.rigid.index_select(0, self.s)
-        i, j = self.i.index_select(0, p), self.j.index_select(0, p)
+        """G's values: g_ij for the rigid pairs whose particles are both still steady, 0 for
+        the others (their pairs are among the moving ones now)."""
+        i, j = self.g_i, self.g_j
+        live = self.steady.index_select(0, i) & self.steady.index_select(0, j)
         g = material_factor(k.index_select(0, i), k.index_select(0, j), zeta.index_select(0, i),
-                            zeta.index_select(0, j)) * self.f_ref.index_select(0, self.s)
-        R = self.rows.numel()
-        crow = torch.zeros(R + 1, dtype=torch.long, device=g.device)
-        crow[1:] = torch.cumsum(torch.bincount(self.ri.index_select(0, p), minlength=R), 0)
+                            zeta.index_select(0, j)) * self.g_f
+        g = torch.where(live, g, torch.zeros_like(g))
         with warnings.catch_warnings():  # "sparse CSR support is in beta": mv on CSR is what we use of it
             warnings.simplefilter("ignore", UserWarning)
-            self.G = torch.sparse_csr_tensor(crow, j, g, size=(R, k.shape[0]), check_invariants=False)
+            self.G = torch.sparse_csr_tensor(self.crow, j, g, size=(self.rows.numel(), k.shape[0]),
+                                             check_invariants=False)
         self.built = True
+
     def apply(self, x, T, k, V, zeta) -> torch.Tensor:
         """(div k grad T) on ``rows``: the matrix product plus the moving pairs' sum."""
         if self.n_static:

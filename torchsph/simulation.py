@@ -49,7 +49,7 @@ LIMIT_FORMULAS = {
 
 # per-particle caches built lazily (some processes of a decomposed run may not hold them):
 # where a checkpoint or a migration does not carry one, it is dropped and rebuilt whole
-LAZY_CACHES = frozenset({"th._zeta", "th._area", "th.normal", "th._zeta_ok", "th._area_ok", "th.lit",
+LAZY_CACHES = frozenset({"th.steady", "th.x_op", "th._zeta", "th._area", "th.normal", "th._zeta_ok", "th._area_ok", "th.lit",
                          "th._zeta_prev", "th._area_prev", "th._normal_prev", "sf.normal", "sf.kappa"})
 
 
@@ -498,7 +498,7 @@ class Simulation:
         d["nl.x_ref"] = self.nl.x_ref
         th = self.thermal
         if th is not None:
-            d.update({"th.k": th.k, "th.T_set": th.T_set, "th.steady": th.steady, "th._zeta": th._zeta, "th._area": th._area,
+            d.update({"th.k": th.k, "th.T_set": th.T_set, "th.steady": th.steady, "th.x_op": th.x_op, "th._zeta": th._zeta, "th._area": th._area,
                       "th.normal": getattr(th, "normal", None),
                       "th._zeta_ok": th._zeta_ok, "th._area_ok": th._area_ok,
                       # the last rebuild's values, to be reused by the lazy recomputation: carried only

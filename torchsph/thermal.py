@@ -259,19 +259,30 @@ class Conduction:
         self.rows = torch.nonzero(~wall if active is None else ~wall & active).squeeze(1)
         self.nb = nb.index_select(0, self.rows)
         solid = state.phase == Phase.SOLID
-        if new_table or self.steady is None or self.steady.shape[0] != state.n:
-            self.steady = solid  # solid at this neighbour build, at the table's positions
-        else:  # a phase change since: melt leaves, what froze joins only at the next build
-            self.steady = self.steady & solid
         op = getattr(self, "op", None)
-        if op is None or not op.same_table(self.rows, nb):  # the pair list once per table
-            op = self.op = ConductionOperator(self.rows, self.nb, mask.index_select(0, self.rows),
-                                              state.x if x_ref is None else x_ref, self.steady, state.body,
-                                              self.kernel, self.h, self.domain)
-            op.table = nb
-        op.select(self.steady)
+        x_ref = state.x if x_ref is None else x_ref
+        # Decomposed runs make G anew at every selection: the ghosts' phases and steady flags
+        # arrive from their owners only at the end of a step, after the selection (kept across
+        # selections, the 2-rank deposition test left the single-process run by 2e-6 in t
+        # after 300 steps; made anew, it agrees to 1e-10)
+        comm = getattr(self, "comm", None)
+        keep = (op is not None and self.steady is not None and self.steady.shape[0] == state.n
+                and self.x_op is not None and self.x_op.shape[0] == state.n and op.same_rows(self.rows, state.n)
+                and not (comm is not None and comm.size > 1))
+        if new_table and not keep:  # G anew at this neighbour build's positions
+            self.steady, self.x_op = solid, x_ref
+        elif (self.steady is None or self.steady.shape[0] != state.n or self.x_op is None
+              or self.x_op.shape[0] != state.n):
+            self.steady, self.x_op = solid & (state.x == x_ref).all(1), x_ref  # (arrays not carried)
+        else:  # a phase change, or G kept: melt leaves it, what froze joins only when G is made anew
+            self.steady = self.steady & solid
+        if not keep:
+            op = self.op = ConductionOperator(self.rows, self.nb, mask.index_select(0, self.rows), self.x_op,
+                                              self.steady, state.body, self.kernel, self.h, self.domain)
+        op.select(nb, mask, self.steady, state.body, work)
         self.rows_w = torch.nonzero(wall if work is None else wall & work).squeeze(1)
-        rest = torch.ones(state.n, dtype=torch.bool, device=state.rho.device)
+        own = getattr(self, "owned", None)  # (ghosts off the rows: their owners count them)
+        rest = torch.ones(state.n, dtype=torch.bool, device=state.rho.device) if own is None else own.clone()
         rest.index_fill_(0, self.rows, False).index_fill_(0, self.rows_w, False)
         self._rho_rest = torch.where(rest, state.rho, torch.full_like(state.rho, math.inf)).min()
         if not hasattr(self, "T_set"):
@@ -301,7 +312,8 @@ class Conduction:
     # melts marks the particle; particles added (a fed wire's layer) give old rows new
     # neighbours of their own body, so the next rebuild recomputes every row.
     _zeta_ok = _area_ok = None  # per particle: the cached value holds and was computed rigid
-    steady = None  # per particle: solid with no phase change since the last neighbour build
+    steady = None  # per particle: solid with no phase change since the conduction matrix was made
+    x_op = None  # per particle: the positions the conduction matrix was made at
     _zeta_prev = _area_prev = _normal_prev = None
 
     def _mark_rigid(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor, work=None):
@@ -452,8 +464,9 @@ class Conduction:
         self.k = torch.cat([self.k, torch.full((new.n,), self.prm.conductivity, dtype=self.k.dtype,
                                                device=self.k.device)])
         self.T_set = torch.cat([self.T_set, new.T])
-        if self.steady is not None:  # not at the table's positions: steady from the next build
+        if self.steady is not None:  # not in the conduction matrix: steady from its next making
             self.steady = torch.cat([self.steady, torch.zeros(new.n, dtype=torch.bool, device=self.steady.device)])
+            self.x_op = torch.cat([self.x_op, new.x])
         for name in ("_zeta", "_area", "normal"):  # kept to length until the forced rebuild
             v = getattr(self, name, None)
             if v is not None:
