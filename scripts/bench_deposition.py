@@ -64,6 +64,38 @@ def measure(tree: Path, what: str, steps: int, checkpoint: Path | None = None) -
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+def preview_physics(key: str, t_state: float, liquidus: float = 1753.15) -> dict:
+    """Per snapshot of the cached preview run: (time, highest temperature K, melt volume mm^3)
+    with melt = T > T_L (volume m / rho)."""
+    import h5py
+    import numpy as np
+
+    out = {}
+    for f in sorted((CACHE / key / f"preview_t{t_state:g}").glob("snap_*.h5")):
+        with h5py.File(f) as h:
+            T, rho = np.asarray(h["temperature"]), np.asarray(h["density"])
+            m = np.asarray(h["mass"]) if "mass" in h else None
+            t = float(h.attrs["time"])
+        melt = T > liquidus
+        vol = float((m[melt] / rho[melt]).sum()) * 1e9 if m is not None else float("nan")
+        out[round(t, 3)] = (t, float(T.max()), vol, int(melt.sum()))
+    return out
+
+
+def physics_table(ref: str, ref_key: str, t_state: float, times=(0.01, 0.02)):
+    """The preview's highest temperature and melt at 10 and 20 ms, this code against ``ref``."""
+    a, b = preview_physics(ref_key, t_state), preview_physics(tree_key(ROOT), t_state)
+    print(f"\n| t ms | highest T {ref} K | highest T this K | difference | melt particles {ref} | melt particles this |"
+          f" melt volume {ref} mm3 | melt volume this mm3 | difference |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for t in times:
+        if round(t, 3) in a and round(t, 3) in b:
+            (ta, Ta, va, na), (tb, Tb, vb, nb) = a[round(t, 3)], b[round(t, 3)]
+            dv = (vb - va) / va if va else float("nan")
+            print(f"| {ta * 1e3:.3f} / {tb * 1e3:.3f} | {Ta:.2f} | {Tb:.2f} | {(Tb - Ta) / Ta:+.2e} | {na} | {nb} | "
+                  f"{va:.5f} | {vb:.5f} | {dv:+.2e} |")
+
+
 def fmt(v, spec):
     return "-" if v is None else format(v, spec)
 
@@ -83,6 +115,7 @@ def run(ref: str, steps: int, full_steps: int, states=("preview", "full"), t_sta
     with tempfile.TemporaryDirectory(prefix="torchsph-ref-") as tmp:
         wt = Path(tmp) / "ref"
         git("worktree", "add", "--detach", str(wt), ref)
+        ref_key = tree_key(wt)
         try:
             results = {}
             for state in states:
@@ -94,6 +127,8 @@ def run(ref: str, steps: int, full_steps: int, states=("preview", "full"), t_sta
                     print(f"# {state} {name}: {json.dumps(results[state, name])}", flush=True)
         finally:
             git("worktree", "remove", "--force", str(wt))
+    if "preview" in states:
+        physics_table(ref, ref_key, t_state)
     print("| state | code | particles | steps | ms/step | plain step ms | rebuilds | rebuild ms | "
           "particle-steps/s | peak RSS GB | syncs/step | syncs/rebuild step | speed-up |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
