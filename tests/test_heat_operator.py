@@ -46,6 +46,19 @@ def checking(sim):
     return rec
 
 
+def hot_spot_block():
+    """(cfg, sim): a moving steel block with a hot spot that melts, then refreezes."""
+    _, cfg = load_case(CASES / "beam_plate", [
+        "scene.size_m=[3e-3, 3e-3, 1e-3]", "thermal.phase_change=true", "fluid.c0_m_s=2.0",
+        "fluid.viscosity_Pa_s=0.005", "scene.velocity_m_s=[0.015, 0.0, 0.0]", "run.t_end_s=0.02"])
+    cfg.pop("beam")
+    _, sim = make_simulation(cfg)
+    s = sim.state
+    hot = (s.x[:, 2] > -0.4e-3) & (s.x[:, 0].abs() < 0.3e-3) & (s.x[:, 1].abs() < 0.3e-3)
+    s.T = torch.where(hot, torch.full_like(s.T, 2500.0), s.T)
+    return cfg, sim
+
+
 def test_operator_equals_the_pair_sum_on_a_cloud():
     """Random cloud, per-particle conductivity, one rigid body: every pair in the matrix."""
     st, c = cloud_conduction()
@@ -60,14 +73,7 @@ def test_operator_through_melting_and_refreezing():
     """A hot spot on a moving block melts and refreezes: particles that froze since the last
     neighbour build are not at the build's distances (they flowed), so their pairs stay
     evaluated every step until the next build. Equal to the pair sum at every step."""
-    _, cfg = load_case(CASES / "beam_plate", [
-        "scene.size_m=[3e-3, 3e-3, 1e-3]", "thermal.phase_change=true", "fluid.c0_m_s=2.0",
-        "fluid.viscosity_Pa_s=0.005", "scene.velocity_m_s=[0.015, 0.0, 0.0]", "run.t_end_s=0.02"])
-    cfg.pop("beam")
-    _, sim = make_simulation(cfg)
-    s = sim.state
-    hot = (s.x[:, 2] > -0.4e-3) & (s.x[:, 0].abs() < 0.3e-3) & (s.x[:, 1].abs() < 0.3e-3)
-    s.T = torch.where(hot, torch.full_like(s.T, 2500.0), s.T)
+    cfg, sim = hot_spot_block()
     rec = checking(sim)
     for _ in range(400):
         run_steps(sim, steps=1)
@@ -100,14 +106,7 @@ def test_restart_between_a_freeze_and_the_next_build_is_bit_for_bit(tmp_path):
     from torchsph import checkpoint as ckpt
     from torchsph.runner import resume
 
-    _, cfg = load_case(CASES / "beam_plate", [
-        "scene.size_m=[3e-3, 3e-3, 1e-3]", "thermal.phase_change=true", "fluid.c0_m_s=2.0",
-        "fluid.viscosity_Pa_s=0.005", "scene.velocity_m_s=[0.015, 0.0, 0.0]", "run.t_end_s=0.02"])
-    cfg.pop("beam")
-    _, sim = make_simulation(cfg)
-    s = sim.state
-    hot = (s.x[:, 2] > -0.4e-3) & (s.x[:, 0].abs() < 0.3e-3) & (s.x[:, 1].abs() < 0.3e-3)
-    s.T = torch.where(hot, torch.full_like(s.T, 2500.0), s.T)
+    cfg, sim = hot_spot_block()
     for _ in range(400):
         run_steps(sim, steps=1)
         st = sim.state
