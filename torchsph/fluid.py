@@ -189,8 +189,13 @@ class WeaklyCompressibleFluid:
         self.ff_mask = gather_nb(fluid, self.nb_f).to(state.dtype)  # source is fluid
         self.has_walls = bool((~fluid).any())
         if self.has_walls:
-            # wall rows: only walls with a fluid neighbour, fluid sources packed first
-            rows_w = torch.nonzero(~fluid if level is None else ~fluid & (level < depth)).squeeze(1)
+            # wall rows: only walls with a fluid neighbour, fluid sources packed first; found
+            # from the fluid's own rows (the table is symmetric), not by reading every row
+            fr = torch.nonzero(fluid).squeeze(1)
+            near = torch.zeros_like(fluid)
+            near.index_fill_(0, nb.index_select(0, fr)[mask.index_select(0, fr)], True)
+            near = near & ~fluid
+            rows_w = torch.nonzero(near if level is None else near & (level < depth)).squeeze(1)
             mw = mask.index_select(0, rows_w) & gather_nb(fluid, nb.index_select(0, rows_w))
             cnt = mw.sum(1)
             keep = cnt > 0
@@ -200,6 +205,7 @@ class WeaklyCompressibleFluid:
             self.rows_w = rows_w
             self.nb_w = torch.gather(nb.index_select(0, rows_w), 1, order)
             self.mask_w = torch.gather(mw, 1, order).to(state.dtype)
+            self._rest_pending = True  # the other walls' pressure and density: set once (below)
 
     def _g(self, like: torch.Tensor) -> torch.Tensor:
         return self._const(like)[0]
@@ -225,7 +231,10 @@ class WeaklyCompressibleFluid:
         x = state.x
         fluid = self.fluid_mask.unsqueeze(-1)
         g = self._g(x)
-        p = self.eos(state.rho)
+        # the pressure where it is read: the fluid rows' from the EOS, the wall rows' extrapolated
+        # (the others keep theirs: the background pressure, set at the selection, or a ghost's
+        # from its owner)
+        p = state.p.index_copy(0, self.rows_f, self.eos(state.rho.index_select(0, self.rows_f)))
         u_visc = v_eval
         if self.has_walls:
             p, u_visc = self._wall_extrapolation(state, p, v_eval, g)
@@ -279,15 +288,21 @@ class WeaklyCompressibleFluid:
         acceleration correction (walls here are unaccelerated, a_w = 0), wall density from
         the inverse EOS (written to ``state.rho``), and the no-slip velocity
         2 u_w - <u_f> for the viscous term."""
-        n = state.n
-        sumW, sp, sv = self._fns["wall"](state.x, p, state.rho, v_eval, self.rows_w, self.nb_w,
+        rows = self.rows_w
+        if getattr(self, "_rest_pending", False):  # walls without fluid neighbours: background
+            # pressure and its density, once per selection (the step leaves them so)
+            rest = ~self.fluid_mask
+            rest.index_fill_(0, rows, False)
+            bg = torch.full_like(p, self.prm.background_pressure)
+            p = torch.where(rest, bg, p)
+            state.rho = torch.where(rest, self.inverse_eos(bg), state.rho)
+            self._rest_pending = False
+        sumW, sp, sv = self._fns["wall"](state.x, p, state.rho, v_eval, rows, self.nb_w,
                                          self.mask_w, g, self.kernel, self.h, self.domain)
-        sumW, sp, sv = (embed(self.rows_w, t, n) for t in (sumW, sp, sv))
-        wall = ~self.fluid_mask
-        has = wall & (sumW > 0)
+        has = sumW > 0
         safe = torch.where(has, sumW, torch.ones_like(sumW))
         pw = torch.where(has, sp / safe, torch.full_like(sp, self.prm.background_pressure))
-        p = torch.where(wall, pw, p)
-        state.rho = torch.where(wall, self.inverse_eos(pw), state.rho)
-        u_wall = torch.where(has.unsqueeze(-1), 2.0 * v_eval - sv / safe.unsqueeze(-1), v_eval)
-        return p, torch.where(wall.unsqueeze(-1), u_wall, v_eval)
+        state.rho = state.rho.index_copy(0, rows, self.inverse_eos(pw))
+        v_w = v_eval.index_select(0, rows)
+        u_wall = torch.where(has.unsqueeze(-1), 2.0 * v_w - sv / safe.unsqueeze(-1), v_w)
+        return p.index_copy(0, rows, pw), v_eval.index_copy(0, rows, u_wall)
