@@ -6,21 +6,16 @@
 
 (per-particle conductivity k, the Laplacian normalisation zeta of
 :func:`torchsph.thermal.laplacian_norm`, fixed per pair selection). Between two solid
-particles of one rigid body the distance does not change, so g_ij is a constant of the
-selection (their volumes may still change: solid next to melt is the melt's wall, its
-density set by the melt's pressure). Those pairs form a sparse matrix G (CSR), built once
-per selection, and their sum is one product of G with the two columns [V, V T]:
+particles of one rigid body the distance does not change, so the kernel factor is a
+constant (their volumes may still change: solid next to melt is the melt's wall, its
+density set by the melt's pressure). Those pairs form a sparse matrix G (CSR) and their
+sum is one product of G with the two columns [V, V T]:
 
     sum_j g_ij V_j (T_i - T_j) = T_i (G V)_i - (G (V T))_i.
 
 The other pairs (any pair with melt or a wall, two bodies moving past each other) are a
 flat pair list whose factors are evaluated every step. No padded neighbour table is read
-per step.
-
-The constant factors are computed from the positions at the last neighbour build
-(``x_ref``, a per-particle array a checkpoint and a migration carry): a rigid pair's
-distance is constant, so the value is the one any later build of the operator (after a
-restart, on another rank) computes, bit for bit.
+per step. How long G lives and what makes it reproducible: :class:`ConductionOperator`.
 """
 from __future__ import annotations
 
@@ -41,8 +36,18 @@ def pair_factor(x_i, x_j, k_i, k_j, z_i, z_j, kernel: Kernel, h: float, domain: 
 
 def kernel_factor(x_i, x_j, kernel: Kernel, h: float, domain: Domain):
     """(1/r) dW/dr on flat pair arrays."""
+    return dwdr_over_r(squared_distance(x_i, x_j, domain), kernel, h)
+
+
+def squared_distance(x_i, x_j, domain: Domain):
+    """|x_i - x_j|^2 (minimum image) on flat pair arrays (a per-component sum: .sum(-1)
+    over an axis of 3 is slow)."""
     d = domain.minimum_image(x_i - x_j)
-    r = torch.sqrt(dot(d, d)).clamp_min(1e-12 * h)  # (a per-component sum: .sum(-1) over 3 is slow)
+    return dot(d, d)
+
+
+def dwdr_over_r(r2, kernel: Kernel, h: float):
+    r = torch.sqrt(r2).clamp_min(1e-12 * h)
     return kernel.dwdr(r, h) / r
 
 
@@ -77,14 +82,12 @@ class ConductionOperator:
         rigid = steady.index_select(0, i) & steady.index_select(0, j) & (body.index_select(0, i) == body.index_select(0, j))
         c = torch.nonzero(rigid).squeeze(1)
         ri, i, j = ri.index_select(0, c), i.index_select(0, c), j.index_select(0, c)
-        d = domain.minimum_image(x_op.index_select(0, i) - x_op.index_select(0, j))
-        r2 = dot(d, d)
+        r2 = squared_distance(x_op.index_select(0, i), x_op.index_select(0, j), domain)
         inside = torch.nonzero(r2 < kernel.radius(h) ** 2).squeeze(1)
         order = torch.argsort(ri.index_select(0, inside) * n + j.index_select(0, inside))  # canonical
         keep = inside.index_select(0, order)
         self.g_row, self.g_i, self.g_j = ri.index_select(0, keep), i.index_select(0, keep), j.index_select(0, keep)
-        r = torch.sqrt(r2.index_select(0, keep)).clamp_min(1e-12 * h)
-        self.g_f = kernel.dwdr(r, h) / r
+        self.g_f = dwdr_over_r(r2.index_select(0, keep), kernel, h)
         self.crow = torch.zeros(R + 1, dtype=torch.long, device=dev)
         self.crow[1:] = torch.cumsum(torch.bincount(self.g_row, minlength=R), 0)
         self.row_of = torch.full((n,), -1, dtype=torch.long, device=dev).index_copy_(

@@ -3,8 +3,9 @@ and the effective heat capacity of melting (2.11).
 
 rho c_eff dT/dt = div(k grad T) is solved for every particle that is not a fixed-
 temperature wall (fluid and rigid solid alike); wall particles hold their temperature
-(a Dirichlet boundary). The pair sum is a pure function on a neighbour table, reduced
-over the neighbour axis, compiled with the fluid terms when asked.
+(a Dirichlet boundary). The step evaluates the pair sum with the cached sparse operator
+of :mod:`torchsph.heat_operator`; :func:`conduction_pairs`, the same sum on a neighbour
+table, is its reference (the tests compare the two at every step).
 """
 from __future__ import annotations
 
