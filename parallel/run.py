@@ -36,7 +36,8 @@ def _state_from(arrays: dict) -> ParticleState:
 def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | None = None):
     """Gather everything by particle id on rank 0 and write it atomically there."""
     arrays = comm.gather_owned(sim)
-    sums = comm.sum([float(v) for v in sim.energy.values()] + [float(v) for v in sim._heat.values()]
+    ek, hk = (comm.union_keys(sim.energy), comm.union_keys(sim._heat)) if sim.thermal is not None else ([], [])
+    sums = comm.sum([float(sim.energy.get(k, 0.0)) for k in ek] + [float(sim._heat.get(k, 0.0)) for k in hk]
                     + [float(sim._E0)]) if sim.thermal is not None else []
     feeder = None
     if sim.feeder is not None:  # the contact counts are each rank's own: the checkpoint holds the totals
@@ -49,7 +50,6 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | Non
         escape = {"n": int(n), "kg": kg}
     if comm.rank != 0:
         return
-    ek, hk = list(sim.energy), list(sim._heat) if sim.thermal is not None else []
     d = {"format": FORMAT, "config_hash": chash, "physics": phys, "t": sim.t, "step": sim.step,
          "arrays": {k: torch.as_tensor(v) for k, v in arrays.items()},
          "energy": dict(zip(ek, sums[:len(ek)])), "heat": dict(zip(hk, sums[len(ek):len(ek) + len(hk)])),
@@ -71,7 +71,10 @@ def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | No
     sim.rearm(local, table=lambda: comm.table_at_reference(sim))  # the table as the last rebuild made it
     sim.nl.n_builds = d["n_builds"]
     if "body_velocity" in d:
-        sim.body_velocity = d["body_velocity"].to(device=dev, dtype=dt)
+        bv = d["body_velocity"].to(device=dev, dtype=dt)
+        if bv.shape[0] < sim.body_velocity.shape[0]:  # (written before every rank held every body's row)
+            bv = torch.cat([bv, sim.body_velocity[bv.shape[0]:]])
+        sim.body_velocity = bv
         sim._stale = d["stale"]
     if sim.feeder is not None and d.get("feeder") is not None:
         sim.feeder.load_state_dict(d["feeder"])

@@ -132,6 +132,9 @@ class SlabComm:
         self.c.Allreduce(v, out, op=MPI.SUM)
         return out.tolist()
 
+    def union_keys(self, keys):
+        return sorted(set().union(*self.c.allgather(list(keys))))
+
     def gather_rows(self, d):
         got = self.c.allgather({k: _np(v) for k, v in d.items()})
         return {k: torch.as_tensor(np.concatenate([g[k] for g in got])).to(v.device) for k, v in d.items()}

@@ -90,9 +90,12 @@ def test_decomposed_run_equals_single_process(tmp_path, which):
 # melted: the phase change re-selects the pairs after the conduction evaluation, which drops the
 # lazily built conduction normalisation (zeta) until the next evaluation, so the checkpoint does
 # not carry it (b14e316 restored it from the freshly built t = 0 state: zeta = 0 on rows made
-# active since, infinite conduction; at full size a blow-up ~20 steps after the restart)
+# active since, infinite conduction; at full size a blow-up ~20 steps after the restart).
+# The substrate is long enough that rank 0's slab and halo hold no wire particle: 8848d6c gave
+# each rank only the velocities of the bodies it held, so rank 0 failed when the feed set the
+# wire's velocity, and a checkpoint (rank 0's copy) lost the wire's row
 COLD_HALF = (ROOT / "cases" / "perpendicular_350W",
-             ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[6.0e-3, 3.0e-3, 1.0e-3]", "scene.wire_offset_m=1.25e-3",
+             ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[14.0e-3, 3.0e-3, 1.0e-3]", "scene.wire_offset_m=1.25e-3",
               "scene.wire_length_m=1.0e-3", "scene.wire_gap_m=0.5e-3", "scene.wire_feed_m_s=0.05"], 0)
 
 

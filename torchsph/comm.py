@@ -38,6 +38,11 @@ class SerialComm:
     def sum(self, vals: list[float]) -> list[float]:
         return vals
 
+    def union_keys(self, keys) -> list[str]:
+        """The names any process holds, sorted (each process books only what happened on its
+        particles: a fed layer or an escape may create a name on some processes only)."""
+        return sorted(keys)
+
     def gather_rows(self, d: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Each array concatenated over processes (rank order)."""
         return d

@@ -163,12 +163,7 @@ class Simulation:
         if phase_change is not None and (fluid is None or thermal is None):
             raise ValueError("Simulation: phase change needs both the fluid and the thermal model")
         # velocity of each rigid body (row b = body b; row 0 unused), from its solid particles
-        nbody = int(state.body.max()) + 1 if state.n else 1
-        solid = (state.phase == Phase.SOLID).to(state.dtype).unsqueeze(-1)
-        tot = torch.zeros(nbody, state.dim, dtype=state.dtype, device=state.device).index_add_(
-            0, state.body, state.v * solid)
-        cnt = torch.zeros(nbody, 1, dtype=state.dtype, device=state.device).index_add_(0, state.body, solid)
-        self.body_velocity = tot / cnt.clamp_min(1.0)
+        self.body_velocity = self._body_velocities(state)
         if fluid is None and thermal is None:
             raise ValueError("Simulation: the scene declares no physics (no fluid, no thermal)")
         self.domain = domain
@@ -480,6 +475,24 @@ class Simulation:
         self.plan.add(self)
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])
 
+    def _body_velocities(self, state: ParticleState) -> torch.Tensor:
+        """(bodies, dim): each rigid body's mean velocity over its solid particles, over all
+        processes (the owned ones: ghosts are copies), so every process holds every body's row
+        even where it holds none of its particles (a rank whose slab the fed wire misses)."""
+        top = state.body.max().reshape(1) if state.n else torch.zeros(1, dtype=torch.long, device=state.device)
+        nbody = int(self.comm.gather_rows({"top": top})["top"].max()) + 1
+        own = self.comm.owned(self)
+        solid = state.phase == Phase.SOLID
+        if own is not None:
+            solid = solid & own[: state.n]
+        solid = solid.to(state.dtype).unsqueeze(-1)
+        tot = torch.zeros(nbody, state.dim, dtype=state.dtype, device=state.device).index_add_(
+            0, state.body, state.v * solid)
+        cnt = torch.zeros(nbody, 1, dtype=state.dtype, device=state.device).index_add_(0, state.body, solid)
+        both = torch.tensor(self.comm.sum(torch.cat([tot, cnt], 1).reshape(-1).tolist()),
+                            dtype=state.dtype, device=state.device).view(nbody, state.dim + 1)
+        return both[:, :-1] / both[:, -1:].clamp_min(1.0)
+
     def set_body_velocity(self, body: int, v: torch.Tensor):
         """Change a rigid body's velocity; its solid particles take it at the end of the step."""
         self.body_velocity[body] = v
@@ -698,8 +711,8 @@ class Simulation:
         own = self.comm.owned(self)
         st = self.state
         stored = self.thermal.energy(st, self.thermal.prm, 0.0, own) - self._E0
-        keys = sorted(self.energy)
-        vals = self.comm.sum([stored] + [float(self.energy[k]) for k in keys])
+        keys = self.comm.union_keys(self.energy)
+        vals = self.comm.sum([stored] + [float(self.energy.get(k, 0.0)) for k in keys])
         stored, energy = vals[0], dict(zip(keys, vals[1:]))
         out = {f"{k}_J": v for k, v in energy.items()}  # gains > 0, losses < 0
         flows = sum(energy.values())
