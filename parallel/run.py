@@ -138,7 +138,7 @@ class SlabRun(SerialRun):
     def summary(self, sim) -> dict:
         comm = self.comm
         fluid = int((sim.fluid_mask[: comm.n_owned]).sum())
-        n_fluid, n_pairs = (int(v) for v in comm.sum([fluid, int(sim.nl.mask[: comm.n_owned].sum())]))
+        n_fluid, n_pairs = (int(v) for v in comm.sum([fluid, int(sim.nl.table.mask[sim.nl.table.rows < comm.n_owned].sum())]))
         peak = comm.c.allreduce(float(sim.state.T_peak[: comm.n_owned].max()) if sim.thermal is not None
                                 and comm.n_owned else -math.inf, op=MPI.MAX)
         escaped = None

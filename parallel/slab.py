@@ -28,6 +28,8 @@ import numpy as np
 import torch
 from mpi4py import MPI
 
+from torchsph.neighbors import NeighbourTable
+
 STATE_PREFIX = "state."
 
 
@@ -40,6 +42,7 @@ def install_abort_hook(comm=None):
         sys.stderr.write(f"torchsph rank {comm.Get_rank()}/{comm.Get_size()}: "
                          + "".join(traceback.format_exception(tp, val, tb)))
         sys.stderr.flush()
+        time.sleep(0.5)  # let mpiexec forward the message before the abort ends every rank
         comm.Abort(1)
 
     sys.excepthook = hook
@@ -208,14 +211,8 @@ class SlabComm:
     def table_at_reference(self, sim):
         """The neighbour table as the last rebuild made it: all pairs within the Verlet radius
         at the reference positions (over the active set's work particles when skipping)."""
-        from torchsph.neighbors import build_table, subset_table
-
-        nl, r = sim.nl, sim.nl.radius + sim.nl.skin
         work = sim.active_set.work if sim.active_set is not None else None
-        if work is None or bool(work.all()):
-            nl.nb, nl.mask = build_table(nl.x_ref, r, nl.domain)
-        else:
-            nl.nb, nl.mask = subset_table(nl.x_ref, work, r, nl.domain)
+        sim.nl.build(sim.nl.x_ref, None if work is None or bool(work.all()) else work)
 
     def check(self, sim):
         why = []
@@ -319,8 +316,8 @@ class SlabComm:
             self.imbalance.append(max(times) / (sum(times) / len(times)))
         arrays, _ = self._common_arrays(sim)
         old_ids = arrays["state.id"]
-        nb_ids = old_ids[sim.nl.nb]  # neighbour table in particle ids
-        nb_mask = sim.nl.mask
+        nb_dense, nb_mask = sim.nl.table.to_dense()
+        nb_ids = old_ids[nb_dense]  # neighbour table in particle ids
         n = self.n_owned
         owned_arrays = {k: v[:n] for k, v in arrays.items()}
         owned_arrays["_nb"] = nb_ids[:n]
@@ -345,8 +342,7 @@ class SlabComm:
         nb = local.view(-1, k)
         mask = new["_mask"] & found.view(-1, k)
         own_row = torch.arange(ids.numel()).unsqueeze(1).expand(-1, k)
-        sim.nl.nb = torch.where(mask, nb, own_row).contiguous()
-        sim.nl.mask = mask
+        sim.nl.table = NeighbourTable.dense(torch.where(mask, nb, own_row).contiguous(), mask)
         del new["_nb"], new["_mask"]
         sim.rearm(new)  # caches some ranks lacked (dropped) are rebuilt whole everywhere
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchsph.config import CaseError, load_case
-from torchsph.neighbors import Domain
+from torchsph.neighbors import Domain, NeighbourTable
 from torchsph.kernels import make_kernel
 from torchsph.runner import make_simulation, run_steps
 from torchsph.scenes import lattice
@@ -110,7 +110,7 @@ def test_recoil_integrates_to_vapour_pressure_times_area():
         st, dom = flat_slab(Tfun, n, dx)
         sf = SurfaceForces(SurfaceParams(recoil=True), kernel, h, dom, 1.5, losses.vapour_pressure)
         nb, mask = build_table(st.x, kernel.radius(h), dom)
-        sf.select_pairs(st, nb, mask)
+        sf.select_pairs(st, NeighbourTable.dense(nb, mask))
         a = sf.accelerations(st)
         F = (a * st.m.unsqueeze(-1)).sum(0)
         xc = lattice(n[:2], dx, dtype=torch.float64)

@@ -7,7 +7,7 @@ import torch
 from conftest import CASES, assert_blow_up_diagnosed
 from torchsph.config import load_case
 from torchsph.kernels import WendlandC2
-from torchsph.neighbors import Domain, build_table
+from torchsph.neighbors import Domain, NeighbourTable, build_table
 from torchsph.runner import make_simulation, run_steps
 from torchsph.scenes import conduction_1d_exact, gaussian_bump_exact
 from torchsph.state import ParticleState, Phase
@@ -24,7 +24,7 @@ def cloud_conduction(n=300, seed=1):
     h = 1.5 * 1e-3 / n ** (1 / 3)
     c = Conduction(ThermalParams(42.0, 450.0), WendlandC2(3), h, dom, k)
     nb, mask = build_table(x, 2 * h, dom)
-    c.select_pairs(st, nb, mask)
+    c.select_pairs(st, NeighbourTable.dense(nb, mask))
     return st, c
 
 
@@ -45,7 +45,7 @@ def test_heat_flows_from_hot_to_cold_and_energy_is_conserved():
     c2 = Conduction(ThermalParams(42.0, 450.0), WendlandC2(3), 1e-4, Domain([0.0] * 3, [1.0] * 3),
                     torch.tensor([42.0, 21.0], dtype=torch.float64))
     nb, mask = build_table(x, 2e-4, c2.domain)
-    c2.select_pairs(st2, nb, mask)
+    c2.select_pairs(st2, NeighbourTable.dense(nb, mask))
     q2 = c2.heat_rate(st2, st2.T)
     assert q2[0] < 0 < q2[1]
     assert float(q2[0] + q2[1]) == pytest.approx(0.0, abs=1e-9 * float(q2[1]))

@@ -33,7 +33,8 @@ DENSE_VOXELS = 1 << 24  # voxel grids up to this size are dilated densely (max-p
 def dilate(x: torch.Tensor, seed: torch.Tensor, radius: float) -> torch.Tensor:
     """Mask of the particles within ``radius`` of a seed particle (voxels of radius / 2:
     it may include some up to 2 radius further). No loop over particles: a loop over the
-    (2k + 1)^d voxel offsets only."""
+    (2k + 1)^d voxel offsets only. The voxel grid spans the seeds' bounding box grown by the
+    radius, not the scene: its cost follows the heated zone."""
     if radius <= 0 or not bool(seed.any()) or bool(seed.all()):
         return seed.clone()
     cell = 0.5 * radius
@@ -41,25 +42,30 @@ def dilate(x: torch.Tensor, seed: torch.Tensor, radius: float) -> torch.Tensor:
     # voxels on a fixed grid (not from the local bounding box), so that a process holding
     # part of the particles grows the same sets as one holding all of them
     c = torch.floor(x / cell).long()
-    c = c - c.min(0).values + k  # >= k, so offsets stay non-negative
-    dims = (c.max(0).values + k + 1).tolist()
+    cs = c[seed]
+    lo, hi = cs.min(0).values - k, cs.max(0).values + k
+    box = torch.nonzero(((c >= lo) & (c <= hi)).all(1)).squeeze(1)  # the only particles that can be reached
+    c = c.index_select(0, box) - lo + k  # >= k, so offsets stay non-negative
+    dims = (hi - lo + 2 * k + 1).tolist()
     mult = [1] * len(dims)
     for a in range(len(dims) - 2, -1, -1):
         mult[a] = mult[a + 1] * dims[a + 1]
     mult_t = torch.tensor(mult, device=x.device)
     key = (c * mult_t).sum(-1)
+    seed_b = seed.index_select(0, box)
+    out = torch.zeros_like(seed)
     if x.shape[1] in (2, 3) and math.prod(dims) <= DENSE_VOXELS:
         # a dense voxel grid: the same cube of offsets as a max-pool of width 2k + 1
         grid = torch.zeros(math.prod(dims), dtype=torch.float32, device=x.device)
-        grid.index_fill_(0, key[seed], 1.0)
+        grid.index_fill_(0, key[seed_b], 1.0)
         pool = torch.nn.functional.max_pool3d if x.shape[1] == 3 else torch.nn.functional.max_pool2d
         grown = pool(grid.view(1, 1, *dims), 2 * k + 1, stride=1, padding=k).reshape(-1)
-        return grown.index_select(0, key) > 0
-    sk = torch.unique(key[seed])
+        return out.index_fill_(0, box[grown.index_select(0, key) > 0], True)
+    sk = torch.unique(key[seed_b])
     coords = torch.stack([(sk // m) % dmax for m, dmax in zip(mult, dims)], -1)
     offs = torch.tensor(list(itertools.product(range(-k, k + 1), repeat=x.shape[1])), device=x.device)
     grown = torch.unique(((coords.unsqueeze(1) + offs.unsqueeze(0)) * mult_t).sum(-1).reshape(-1))
-    return torch.isin(key, grown)
+    return out.index_fill_(0, box[torch.isin(key, grown)], True)
 
 
 class ActiveSet:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from .neighbors import NeighbourTable
 from .state import ParticleState
 
 PHYSICS_SECTIONS = ("scene", "fluid", "thermal", "beam", "surface", "numerics")
@@ -141,7 +142,8 @@ def snapshot(sim) -> dict:
         "heat": {k: _cpu(v) for k, v in getattr(sim, "_heat", {}).items()},
         "E0": getattr(sim, "_E0", None),
         "body_velocity": _cpu(sim.body_velocity),
-        "nl": {"x_ref": _cpu(sim.nl.x_ref), "nb": _cpu(sim.nl.nb), "mask": _cpu(sim.nl.mask),
+        "nl": {"x_ref": _cpu(sim.nl.x_ref), "table": {k: _cpu(v) if isinstance(v, torch.Tensor) else v
+                                                      for k, v in sim.nl.table.state_dict().items()},
                "n_builds": sim.nl.n_builds, "n_partial": sim.nl.n_partial,
                "static": _cpu(sim.nl.static), "x_full": _cpu(sim.nl.x_full)},
         "rng": torch.get_rng_state(),
@@ -248,7 +250,10 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     sim.n_fluid = int(sim.fluid_mask.sum())
     sim.body_velocity = to(d["body_velocity"])
     nl = d["nl"]
-    sim.nl.x_ref, sim.nl.nb, sim.nl.mask = to(nl["x_ref"]), to(nl["nb"]), to(nl["mask"])
+    sim.nl.x_ref = to(nl["x_ref"])
+    tab = nl.get("table", nl)  # (older checkpoints hold the dense (N, k) table as nl's nb / mask)
+    sim.nl.table = NeighbourTable.from_state({k: to(v) if isinstance(v, torch.Tensor) else v
+                                              for k, v in tab.items() if k in ("rows", "nb", "mask", "n")})
     sim.nl.n_builds = nl["n_builds"]
     # the partial rebuild's body set (absent in older checkpoints: the next rebuild is a full one)
     sim.nl.n_partial = nl.get("n_partial", 0)

@@ -165,8 +165,7 @@ class WeaklyCompressibleFluid:
         return self.prm.rho0 * base ** (1.0 / g)
 
     # --- pair subsets, refreshed when the neighbour list changes -----------
-    def select_pairs(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor,
-                     level: torch.Tensor | None = None, depth: int = 2):
+    def select_pairs(self, state: ParticleState, table, level: torch.Tensor | None = None, depth: int = 2):
         """Rows of the neighbour table for fluid particles (any source) and for wall
         particles (fluid sources only, by mask). Walls never get a momentum row.
 
@@ -185,7 +184,7 @@ class WeaklyCompressibleFluid:
             own = torch.nonzero(fluid & (level == 0)).squeeze(1)
             self.rows_f = torch.cat([own, torch.nonzero(fluid & (level > 0) & (level <= depth)).squeeze(1)])
             self.n_momentum = own.numel()
-        self.nb_f = nb.index_select(0, self.rows_f)
+        self.nb_f = table.gather(self.rows_f, within=True)[0]
         self.ff_mask = gather_nb(fluid, self.nb_f).to(state.dtype)  # source is fluid
         self.has_walls = bool((~fluid).any())
         if self.has_walls:
@@ -193,17 +192,19 @@ class WeaklyCompressibleFluid:
             # from the fluid's own rows (the table is symmetric), not by reading every row
             fr = torch.nonzero(fluid).squeeze(1)
             near = torch.zeros_like(fluid)
-            near.index_fill_(0, nb.index_select(0, fr)[mask.index_select(0, fr)], True)
+            nbf, mf = table.gather(fr, within=True)
+            near.index_fill_(0, nbf[mf], True)
             near = near & ~fluid
             rows_w = torch.nonzero(near if level is None else near & (level < depth)).squeeze(1)
-            mw = mask.index_select(0, rows_w) & gather_nb(fluid, nb.index_select(0, rows_w))
+            nbw, mw = table.gather(rows_w, within=True)
+            mw = mw & gather_nb(fluid, nbw)
             cnt = mw.sum(1)
             keep = cnt > 0
-            rows_w, mw = rows_w[keep], mw[keep]
+            rows_w, mw, nbw = rows_w[keep], mw[keep], nbw[keep]
             kw = max(int(cnt.max()) if cnt.numel() else 0, 1)
             order = torch.argsort((~mw).to(torch.int8), dim=1, stable=True)[:, :kw]
             self.rows_w = rows_w
-            self.nb_w = torch.gather(nb.index_select(0, rows_w), 1, order)
+            self.nb_w = torch.gather(nbw, 1, order)
             self.mask_w = torch.gather(mw, 1, order).to(state.dtype)
             self._rest_pending = True  # the other walls' pressure and density: set once (below)
 

@@ -105,9 +105,9 @@ class ConductionOperator:
         return (rows.shape == self.rows.shape and self.row_of.shape[0] == n
                 and bool(torch.equal(rows, self.rows)))
 
-    def select(self, nb: torch.Tensor, mask: torch.Tensor, steady: torch.Tensor, body: torch.Tensor,
-               work: torch.Tensor | None):
-        """The pairs evaluated every step, from the whole table ``nb``/``mask``: every pair
+    def select(self, table, steady: torch.Tensor, body: torch.Tensor, work: torch.Tensor | None):
+        """The pairs evaluated every step, from the neighbour table (a
+        :class:`~torchsph.neighbors.NeighbourTable`): every pair
         with a particle that is not steady, or of two bodies. They are found from the table
         rows of the particles outside the main body or not steady (in the work set), each
         pair once, as it is or transposed (the table is symmetric); G's values are made
@@ -116,9 +116,9 @@ class ConductionOperator:
         if work is not None:
             cand = cand & work
         cidx = torch.nonzero(cand).squeeze(1)
-        nbc = nb.index_select(0, cidx)
+        nbc, mc = table.gather(cidx, within=True)
         kk = nbc.shape[1]
-        mc = mask.index_select(0, cidx) & (nbc != cidx.unsqueeze(1))
+        mc = mc & (nbc != cidx.unsqueeze(1))
         ent = torch.nonzero(mc.reshape(-1)).squeeze(1)
         ci = cidx.index_select(0, torch.div(ent, kk, rounding_mode="floor"))
         cj = nbc.reshape(-1).index_select(0, ent)

@@ -235,6 +235,64 @@ def brute_force_pairs(x: torch.Tensor, radius: float, domain: Domain):
     return ii[keep], jj[keep]
 
 
+class NeighbourTable:
+    """The neighbour lists of some particles (``rows``, sorted; the others have none), as a
+    (R, k) table in the particles' numbering: row r lists the neighbours of ``rows[r]``,
+    padded with ``rows[r]`` itself (``mask`` False there). With an active set only its work
+    particles have rows, so the table's size follows them, not all N particles.
+    :meth:`gather` reads the rows of any particles (an empty row for one without)."""
+
+    def __init__(self, rows: torch.Tensor, nb: torch.Tensor, mask: torch.Tensor, n: int):
+        self.rows, self.nb, self.mask, self.n = rows, nb, mask, n
+        self.slot = torch.full((n,), -1, dtype=torch.long, device=nb.device).index_copy_(
+            0, rows, torch.arange(rows.numel(), device=nb.device))
+
+    @classmethod
+    def dense(cls, nb: torch.Tensor, mask: torch.Tensor) -> "NeighbourTable":
+        """A table with a row for every particle (an (N, k) table as :func:`build_table` makes)."""
+        return cls(torch.arange(nb.shape[0], device=nb.device), nb, mask, nb.shape[0])
+
+    @property
+    def k(self) -> int:
+        return self.nb.shape[1]
+
+    def gather(self, idx: torch.Tensor, within: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """(nb, mask) of the particles ``idx``, shape (len(idx), k); a particle without a row
+        gets an empty one (itself, mask False). ``within``: the caller knows every one has a
+        row (the working particles' subsets): read straight (a particle without one raises)."""
+        if self.rows.numel() == 0:
+            return idx.unsqueeze(1).clone(), torch.zeros((idx.numel(), 1), dtype=torch.bool, device=idx.device)
+        s = self.slot.index_select(0, idx)
+        if within:
+            return self.nb.index_select(0, s), self.mask.index_select(0, s)
+        has = (s >= 0).unsqueeze(1)
+        s = s.clamp_min(0)
+        nb = torch.where(has, self.nb.index_select(0, s), idx.unsqueeze(1))
+        return nb, self.mask.index_select(0, s) & has
+
+    def to_dense(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The (N, k) table of every particle (for tests and tools: its size follows N)."""
+        nb = torch.arange(self.n, device=self.nb.device).unsqueeze(1).repeat(1, max(self.k, 1))
+        mask = torch.zeros(nb.shape, dtype=torch.bool, device=nb.device)
+        if self.rows.numel():
+            nb.index_copy_(0, self.rows, self.nb)
+            mask.index_copy_(0, self.rows, self.mask)
+        return nb, mask
+
+    def n_pairs(self) -> int:
+        return int(self.mask.sum())
+
+    def state_dict(self) -> dict:
+        return {"rows": self.rows, "nb": self.nb, "mask": self.mask, "n": self.n}
+
+    @classmethod
+    def from_state(cls, d: dict, device=None) -> "NeighbourTable":
+        to = lambda t: t.to(device) if device is not None else t  # noqa: E731
+        if "rows" not in d:  # a dense (N, k) table (checkpoints before compact tables)
+            return cls.dense(to(d["nb"]), to(d["mask"]))
+        return cls(to(d["rows"]), to(d["nb"]), to(d["mask"]), int(d["n"]))
+
+
 class VerletList:
     """Neighbour table of pairs within ``radius + skin``, rebuilt only when some particle has moved more
     than ``skin / 2`` since the last build. Pairs between ``radius`` and
@@ -245,10 +303,13 @@ class VerletList:
     afresh only the rows of the other particles (melt, other bodies, particles that joined the
     work since) and hands each body particle the new partners it gained among them. The
     result holds exactly the pairs a full build would (tests/test_neighbors.py), in another
-    order within rows. The body set (``static``) only shrinks between full builds: a particle
+    order within rows. The body set (``static``): a particle
     leaves it when it leaves the body (melts) or has moved otherwise than the body since the
     last full build (beyond rounding: 1e-8 skin in float64, 1e-3 skin in float32, far inside the
-    skin's margin); a full build starts it afresh. A full build is made when the searched rows exceed ``partial_limit`` of
+    skin's margin); a body particle searched afresh (one that joined the work set) joins it,
+    its row now holding all its pairs; a full build starts it afresh. The table holds rows
+    for the working particles only (:class:`NeighbourTable`), and a partial rebuild reads
+    and writes only those. A full build is made when the searched rows exceed ``partial_limit`` of
     the working particles, or when particles were added or removed."""
 
     partial_limit = 0.5
@@ -258,11 +319,27 @@ class VerletList:
         self.skin = skin
         self.domain = domain
         self.x_ref: torch.Tensor | None = None
-        self.nb = self.mask = None
+        self.table: NeighbourTable | None = None
         self.n_builds = 0
         self.n_partial = 0  # of the builds, partial ones
         self.static: torch.Tensor | None = None  # rows whose mutual pairs the table holds (one body)
         self.x_full: torch.Tensor | None = None  # positions at the last full build
+
+    @property
+    def nb(self) -> torch.Tensor | None:
+        """The (N, k) table of every particle, materialised (tests and tools; the solver reads
+        :attr:`table`'s rows)."""
+        return None if self.table is None else self.table.to_dense()[0]
+
+    @property
+    def mask(self) -> torch.Tensor | None:
+        return None if self.table is None else self.table.to_dense()[1]
+
+    def build(self, x: torch.Tensor, work: torch.Tensor | None = None):
+        """A full build: the table of every particle, or of the ``work`` particles only."""
+        r = self.radius + self.skin
+        self.table = NeighbourTable.dense(*build_table(x, r, self.domain)) if work is None else \
+            subset_table(x, work, r, self.domain)
 
     def needs_rebuild(self, x: torch.Tensor, rows: torch.Tensor | None = None) -> bool:
         """Whether some particle moved more than skin/2 since the last build; with ``rows``,
@@ -290,10 +367,7 @@ class VerletList:
                 work = None
             body = rigid() if rigid is not None else None
             if body is None or not self._partial(x, work, body):
-                if work is None:
-                    self.nb, self.mask = build_table(x, self.radius + self.skin, self.domain)
-                else:
-                    self.nb, self.mask = subset_table(x, work, self.radius + self.skin, self.domain)
+                self.build(x, work)
                 self.static = self.x_full = None
                 if body is not None:
                     self.static = body if work is None else body & work
@@ -305,17 +379,21 @@ class VerletList:
 
     def _partial(self, x: torch.Tensor, work: torch.Tensor | None, body: torch.Tensor) -> bool:
         """Rebuild from the current table keeping the body's mutual pairs; False (nothing
-        done) where a full build is due."""
+        done) where a full build is due. Only the working particles' rows are read and
+        written (the table holds no others)."""
         N = x.shape[0]
-        if self.static is None or self.static.shape[0] != N or self.nb is None or self.nb.shape[0] != N:
+        T = self.table
+        if self.static is None or self.static.shape[0] != N or T is None or T.n != N:
             return False
         st = self.static & body
         if work is not None:
             st &= work
-        if bool(st.any()):  # moved with the body since the last full build (rounding aside)
-            d = self.domain.minimum_image(x - self.x_full)
-            drift = (d - d[st].median(dim=0).values).abs().amax(1)
-            st &= drift <= self.skin * (1e-3 if x.dtype == torch.float32 else 1e-8)
+        srows = torch.nonzero(st).squeeze(1)
+        if srows.numel():  # moved with the body since the last full build (rounding aside)
+            d = self.domain.minimum_image(x.index_select(0, srows) - self.x_full.index_select(0, srows))
+            drift = (d - d.median(dim=0).values).abs().amax(1)
+            srows = srows[drift <= self.skin * (1e-3 if x.dtype == torch.float32 else 1e-8)]
+            st = torch.zeros_like(st).index_fill_(0, srows, True)
         alive = work if work is not None else torch.ones(N, dtype=torch.bool, device=x.device)
         q = torch.nonzero(alive & ~st).squeeze(1)  # rows searched afresh
         n_work = int(alive.sum())
@@ -323,10 +401,11 @@ class VerletList:
             return False
         dev = x.device
         # the body's mutual pairs stay where the table holds them; every other entry is freed
-        nb = self.nb
-        k = nb.shape[1]
-        col = torch.arange(N, device=dev).unsqueeze(1)
-        keep = self.mask & st.unsqueeze(1) & st.index_select(0, nb.reshape(-1)).view_as(nb)
+        nb, keep = T.gather(srows)
+        k = T.k
+        S = srows.numel()
+        col = srows.unsqueeze(1)
+        keep = keep & st.index_select(0, nb.reshape(-1)).view_as(nb)
         # rows searched afresh, among the working particles
         if work is None:
             qnb, qmask = build_table(x, self.radius + self.skin, self.domain, rows=q)
@@ -339,14 +418,15 @@ class VerletList:
         ti, tj = qj.index_select(0, back), qi.index_select(0, back)  # row ti gains tj
         perm = torch.sort(ti, stable=True).indices
         ti, tj = ti.index_select(0, perm), tj.index_select(0, perm)
-        gain = torch.bincount(ti, minlength=N)
+        ls = torch.searchsorted(srows, ti)  # ti's place among the body rows
+        gain = torch.bincount(ls, minlength=S)
         grows = torch.nonzero(gain).squeeze(1)
         # width: the searched rows' longest, and room in every gaining row for its gain
         short = (gain.index_select(0, grows) - (~keep.index_select(0, grows)).sum(1)).clamp_(min=0)
         k2 = max(k + (int(short.max()) if grows.numel() else 0), qnb.shape[1])
         if k2 > k:
-            keep = torch.cat([keep, torch.zeros((N, k2 - k), dtype=torch.bool, device=dev)], 1)
-            nb = torch.cat([nb, col.expand(N, k2 - k)], 1)
+            keep = torch.cat([keep, torch.zeros((S, k2 - k), dtype=torch.bool, device=dev)], 1)
+            nb = torch.cat([nb, col.expand(S, k2 - k)], 1)
         nb = torch.where(keep, nb, col)
         mask = keep
         flat_nb, flat_mask = nb.view(-1), mask.view(-1)
@@ -360,24 +440,38 @@ class VerletList:
             # slots are in (row, column) order, as the gained partners are (sorted by row)
             flat_nb.index_copy_(0, slots, tj)
             flat_mask.index_fill_(0, slots, True)
+        # the new table: the working rows, i.e. the body rows kept and the rows searched afresh
+        rows = torch.nonzero(alive).squeeze(1)  # every one is a body row kept or a row searched
+        W = rows.numel()
+        nb_new = torch.empty((W, k2), dtype=nb.dtype, device=dev)
+        mask_new = torch.empty((W, k2), dtype=torch.bool, device=dev)
+        if S:
+            at = torch.searchsorted(rows, srows)
+            nb_new.index_copy_(0, at, nb)
+            mask_new.index_copy_(0, at, mask)
         if q.numel():  # the searched rows, as the search laid them out (from the left)
-            flat = torch.nonzero(qmask.reshape(-1)).squeeze(1)
-            w = qmask.shape[1]
-            r = torch.div(flat, w, rounding_mode="floor")
-            slots = q.index_select(0, r) * k2 + flat % w
-            flat_nb.index_copy_(0, slots, qnb.reshape(-1).index_select(0, flat))
-            flat_mask.index_fill_(0, slots, True)
-        self.nb, self.mask = nb, mask
-        self.static = st
+            at = torch.searchsorted(rows, q)
+            w = qnb.shape[1]
+            if w < k2:
+                qnb = torch.cat([qnb, q.unsqueeze(1).expand(-1, k2 - w)], 1)
+                qmask = torch.cat([qmask, torch.zeros((q.numel(), k2 - w), dtype=torch.bool, device=dev)], 1)
+            nb_new.index_copy_(0, at, qnb)
+            mask_new.index_copy_(0, at, qmask)
+        self.table = NeighbourTable(rows, nb_new, mask_new, N)
+        # the body's rows searched now hold all their pairs with the working particles, so
+        # they join the body set: the next partial rebuild keeps them instead of searching
+        # them again (a particle that joins the work set is searched once)
+        self.static = st.index_fill_(0, q, True) & body
         self.n_partial += 1
         return True
 
 
 def subset_table(x: torch.Tensor, work: torch.Tensor, radius: float, domain: Domain,
                  rows: torch.Tensor | None = None):
-    """:func:`build_table` over the particles ``work`` only, in the full numbering: rows of
-    the others hold only themselves (mask False). With ``rows`` (indices of working
-    particles), the table of those rows only, as :func:`build_table`'s ``rows``."""
+    """:func:`build_table` over the particles ``work`` only, in the full numbering: a
+    :class:`NeighbourTable` with the working particles' rows (the others have none). With
+    ``rows`` (indices of working particles), ``(nb, mask)`` of those rows only, as
+    :func:`build_table`'s ``rows``."""
     idx = torch.nonzero(work).squeeze(1)
     if rows is not None:
         local = torch.full((x.shape[0],), -1, dtype=torch.long, device=x.device)
@@ -385,9 +479,4 @@ def subset_table(x: torch.Tensor, work: torch.Tensor, radius: float, domain: Dom
         nb_w, mask_w = build_table(x.index_select(0, idx), radius, domain, rows=local.index_select(0, rows))
         return idx.index_select(0, nb_w.reshape(-1)).view_as(nb_w), mask_w
     nb_w, mask_w = build_table(x.index_select(0, idx), radius, domain)
-    N, k = x.shape[0], nb_w.shape[1]
-    nb = torch.arange(N, device=x.device).unsqueeze(1).repeat(1, k)
-    nb.index_copy_(0, idx, idx.index_select(0, nb_w.reshape(-1)).view_as(nb_w))
-    mask = torch.zeros((N, k), dtype=torch.bool, device=x.device)
-    mask.index_copy_(0, idx, mask_w)
-    return nb, mask
+    return NeighbourTable(idx, idx.index_select(0, nb_w.reshape(-1)).view_as(nb_w), mask_w, x.shape[0])

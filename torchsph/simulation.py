@@ -69,10 +69,8 @@ class PlanStats:
     def select(self, sim):
         s = sim.state
         cur = {}
-        mask = sim.nl.mask
-        built = sim.active_set.work if sim.active_set is not None else None  # rows with a table row
-        rows_t = torch.nonzero(built).squeeze(1) if built is not None else None
-        per_row = (mask if rows_t is None else mask.index_select(0, rows_t)).sum(1)
+        table = sim.nl.table
+        per_row = table.mask.sum(1)  # the table's rows (the work set's, with an active set)
         nbuilt = max(int((per_row > 0).sum()), 1)
         self.n = s.n
         own = sim.comm.owned(sim)
@@ -81,7 +79,7 @@ class PlanStats:
             integrated.index_fill_(0, sim.thermal.rows, True)
         self.n_active = int((integrated if own is None else integrated & own).sum())
         self.all_pairs = s.n * int(per_row.sum()) / nbuilt
-        pairs = lambda rows: int(mask.index_select(0, rows).sum())  # noqa: E731
+        pairs = lambda rows: int(table.gather(rows, within=True)[1].sum())  # noqa: E731
         if sim.fluid is not None:
             f = sim.fluid
             cur["momentum"] = (f.rows_f.numel(), pairs(f.rows_f))
@@ -280,20 +278,20 @@ class Simulation:
 
     def _select(self, new_table: bool = False):
         if self.fluid is not None:
-            self.fluid.select_pairs(self.state, self.nl.nb, self.nl.mask, level=self.comm.levels(self),
+            self.fluid.select_pairs(self.state, self.nl.table, level=self.comm.levels(self),
                                     depth=getattr(self.comm, "depth", 2))
         if self.surface is not None:
-            self.surface.select_pairs(self.state, self.nl.nb, self.nl.mask)
+            self.surface.select_pairs(self.state, self.nl.table)
         if self.thermal is not None:
             self.thermal.owned = self.comm.owned(self)
-            self.thermal.select_pairs(self.state, self.nl.nb, self.nl.mask, active=self.active_mask,
+            self.thermal.select_pairs(self.state, self.nl.table, active=self.active_mask,
                                       work=self.active_set.work if self.active_set is not None else None,
                                       x_ref=self.nl.x_ref, new_table=new_table)
         self.plan.select(self)
 
     @property
     def n_pairs(self) -> int:
-        return int(self.nl.mask.sum())
+        return self.nl.table.n_pairs()
 
     # --- time-step control --------------------------------------------------
     def _measure(self):
@@ -636,7 +634,7 @@ class Simulation:
         """For each of ``rows``: the rigid body with the largest kernel weight among its
         solid neighbours (0 where no solid is near)."""
         s = self.state
-        nb = self.nl.nb.index_select(0, rows)
+        nb = self.nl.table.gather(rows)[0]
         m = self.fluid_model
         solid = (s.phase == Phase.SOLID).to(s.dtype)
         best = torch.zeros(rows.numel(), dtype=torch.long, device=s.device)
@@ -653,7 +651,7 @@ class Simulation:
         """Shepard average of the rigid-solid neighbours' velocity around ``rows`` (the
         velocity of the body a particle rests on) and whether any solid is near."""
         s = self.state
-        nb = self.nl.nb.index_select(0, rows)
+        nb = self.nl.table.gather(rows)[0]
         solid = (s.phase == Phase.SOLID).to(s.dtype)
         m = self.fluid_model
         avg, sW = neighbour_average(s.x, s.v, rows, nb, solid, m.kernel, m.h, self.domain)

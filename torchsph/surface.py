@@ -121,11 +121,11 @@ class SurfaceForces:
     def marangoni_on(self) -> bool:
         return self.prm.marangoni and self.prm.dtension_dT != 0.0
 
-    def select_pairs(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor):
+    def select_pairs(self, state: ParticleState, table):
+        """The fluid particles' rows of the neighbour table (a :class:`~torchsph.neighbors.NeighbourTable`)."""
         fluid = state.phase == Phase.FLUID
         self.rows_f = torch.nonzero(fluid).squeeze(1)
-        self.nb_f = nb.index_select(0, self.rows_f)
-        self.mask_f = mask.index_select(0, self.rows_f)
+        self.nb_f, self.mask_f = table.gather(self.rows_f, within=True)
         self.fluid = fluid
 
     def tension(self, T: torch.Tensor) -> torch.Tensor:

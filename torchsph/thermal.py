@@ -243,7 +243,7 @@ class Conduction:
         self.delta_norm = flat_surface_delta(kernel, h_over_dx) if self.losses.active else 1.0
         self._zeta_fn = torch.compile(laplacian_norm, dynamic=True) if compile else laplacian_norm
 
-    def select_pairs(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor,
+    def select_pairs(self, state: ParticleState, table,
                      active: torch.Tensor | None = None, work: torch.Tensor | None = None,
                      x_ref: torch.Tensor | None = None, new_table: bool = True):
         """Rows: every particle but the walls, or with an active set only its active
@@ -254,11 +254,11 @@ class Conduction:
         self.wall_mask = wall
         # Laplacian normalisation and surface area per particle (and the surface normal):
         # recomputed after each neighbour rebuild, except where they cannot have changed
-        self._mark_rigid(state, nb, mask, work)
+        self._mark_rigid(state, table, work)
         self._zeta = None
         self._area = None
         self.rows = torch.nonzero(~wall if active is None else ~wall & active).squeeze(1)
-        self.nb = nb.index_select(0, self.rows)
+        self.nb, mask_r = table.gather(self.rows, within=True)
         solid = state.phase == Phase.SOLID
         op = getattr(self, "op", None)
         x_ref = state.x if x_ref is None else x_ref
@@ -278,9 +278,9 @@ class Conduction:
         else:  # a phase change, or G kept: melt leaves it, what froze joins only when G is made anew
             self.steady = self.steady & solid
         if not keep:
-            op = self.op = ConductionOperator(self.rows, self.nb, mask.index_select(0, self.rows), self.x_op,
+            op = self.op = ConductionOperator(self.rows, self.nb, mask_r, self.x_op,
                                               self.steady, state.body, self.kernel, self.h, self.domain)
-        op.select(nb, mask, self.steady, state.body, work)
+        op.select(table, self.steady, state.body, work)
         self.rows_w = torch.nonzero(wall if work is None else wall & work).squeeze(1)
         own = getattr(self, "owned", None)  # (ghosts off the rows: their owners count them)
         rest = torch.ones(state.n, dtype=torch.bool, device=state.rho.device) if own is None else own.clone()
@@ -289,9 +289,9 @@ class Conduction:
         if not hasattr(self, "T_set"):
             self.T_set = state.T.clone()  # the walls' prescribed temperatures
         if self.rows_w.numel():
-            nbw = nb.index_select(0, self.rows_w)
+            nbw, mw = table.gather(self.rows_w, within=True)
             self.nb_w = nbw
-            self.mask_w = (mask.index_select(0, self.rows_w) & ~gather_nb(wall, nbw)).to(state.dtype)
+            self.mask_w = (mw & ~gather_nb(wall, nbw)).to(state.dtype)
 
     def wall_temperature(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
         """T with wall rows replaced by the mirrored Dirichlet value 2 T_set - <T>."""
@@ -317,14 +317,14 @@ class Conduction:
     x_op = None  # per particle: the positions the conduction matrix was made at
     _zeta_prev = _area_prev = _normal_prev = None
 
-    def _mark_rigid(self, state: ParticleState, nb: torch.Tensor, mask: torch.Tensor, work=None):
+    def _mark_rigid(self, state: ParticleState, table, work=None):
         """Per particle: solid, not next to melt, and so are all its neighbours, of its body.
         Only the rows of the table's ``work`` set (None: all) are read: the others have no
         neighbours (a solid one is rigid)."""
         fluid = state.phase == Phase.FLUID
         solid = state.phase == Phase.SOLID
         w = None if work is None else torch.nonzero(work).squeeze(1)
-        nbw, mw = (nb, mask) if w is None else (nb.index_select(0, w), mask.index_select(0, w))
+        nbw, mw = table.gather(torch.arange(state.n, device=state.x.device) if w is None else w, within=True)
         # solid next to melt is the melt's wall: its density follows the melt's pressure
         firm_w = (solid if w is None else solid.index_select(0, w)) & ~(gather_nb(fluid, nbw) & mw).any(1)
         firm = firm_w if w is None else solid.index_copy(0, w, firm_w)
