@@ -251,6 +251,8 @@ class WeaklyCompressibleFluid:
             dx, dWr = torch.cat([dx, dx_g]), torch.cat([dWr, self.kernel.dwdr(r_g, self.h) / r_g])
         self._geom = (dx, dWr, state.rho)
         body = self._const(x)[1]
+        if not terms:  # the momentum rows' accelerations, zero elsewhere (ghosts: their owners')
+            return embed(rows, a + body, n)
         a = embed(rows, a, n)
         zero = torch.zeros_like(a)
         if terms:
@@ -267,7 +269,8 @@ class WeaklyCompressibleFluid:
         :meth:`momentum` call, with velocities ``v`` (walls: their prescribed velocity),
         and the particle-shifting displacement when shifting is on (else None): it moves
         particles down the gradient of the particle concentration, which keeps the
-        distribution isotropic where the flow stretches it; fluid only, at most 0.1 dx0."""
+        distribution isotropic where the flow stretches it; fluid only, at most 0.1 dx0: the
+        shift of the rows :attr:`rows_f` (the others do not shift)."""
         dx, dWr, rho_geom = self._geom
         rho = rho_geom if rho is None else rho  # the current densities (a decomposition refreshed its ghosts')
         prm = self.prm
@@ -281,7 +284,7 @@ class WeaklyCompressibleFluid:
         if sh is not None:
             norm = sh.norm(dim=-1, keepdim=True)
             lim = 0.1 * dx0
-            sh = embed(self.rows_f, torch.where(norm > lim, sh * (lim / norm.clamp_min(1e-300)), sh), n)
+            sh = torch.where(norm > lim, sh * (lim / norm.clamp_min(1e-300)), sh)
         return embed(self.rows_f, dr, n), sh
 
     def _wall_extrapolation(self, state, p, v_eval, g):

@@ -216,8 +216,9 @@ class Simulation:
         out = self.fluid.momentum(self.state, v_eval, terms=terms)
         if self.surface is None:
             return out
-        if not terms:
-            return out + self.surface.accelerations(self.state)
+        if not terms:  # the surface particles' accelerations added into the fresh array
+            rows, a_s = self.surface.accelerations(self.state, rows_only=True)
+            return out.index_add_(0, rows, a_s)
         a_s, parts_s = self.surface.accelerations(self.state, terms=True)
         return out[0] + a_s, {**out[1], **parts_s}
 
@@ -390,27 +391,33 @@ class Simulation:
         s = self.state
         fm = self.fluid_mask.unsqueeze(-1)
         a = self.dvdt  # zero for walls: they keep their prescribed velocity
-        v_half = s.v + 0.5 * dt * a  # 1a
-        v_tilde = s.v + dt * a  # 1b, used by the viscous term at the end of the step
+        # (one fused pass per whole-array update: at full size these passes over every particle,
+        # most of them rigid, cost more than the physics of the few that move)
+        v_half = torch.add(s.v, a, alpha=0.5 * dt)  # 1a
+        v_tilde = torch.add(s.v, a, alpha=dt)  # 1b, used by the viscous term at the end of the step
         if self.thermal is not None:  # the energy equation in specific enthalpy h(T)
             th = self.thermal
             rows0 = th.rows  # integrated particles (not walls; only the active set when skipping)
-            H = th.to_enthalpy(s.T)
-            H_half = H + 0.5 * dt * self.dTdt  # 1d (dh/dt = 0 off the rows)
+            T0, a_r = s.T, self.dTdt.index_select(0, rows0)
+            H_r = th.to_enthalpy(T0.index_select(0, rows0))
+            H_half_r = H_r + 0.5 * dt * a_r  # 1d on the rows (dh/dt = 0 off them: H_half = h(T) there)
+            H_half = None  # the whole array, made only where particles are added, removed or re-selected
+
+            def whole_H_half():
+                return th.to_enthalpy(T0).index_copy_(0, rows0, H_half_r)
             # extrapolated for the evaluation at the end of the step; walls keep theirs
-            s.T = s.T.index_copy(0, rows0, th.to_temperature(
-                H.index_select(0, rows0) + dt * self.dTdt.index_select(0, rows0), s.T.index_select(0, rows0)))
+            s.T = s.T.index_copy(0, rows0, th.to_temperature(H_r + dt * a_r, T0.index_select(0, rows0)))
         shift = None
         if self.fluid is not None:
             self.drhodt, shift = self.fluid.continuity(  # at x_n, with u_{n+1/2}
                 v_half, s.m, self.dx if self.fluid.prm.shifting > 0 else 0.0, rho=s.rho)
             s.rho = s.rho + dt * self.drhodt
-        step = dt * torch.where(fm, v_half, s.v)  # 1e (rigid bodies move with their velocity)
+        x_new = torch.add(s.x, torch.where(fm, v_half, s.v), alpha=dt)  # 1e (rigid bodies move with their velocity)
         if shift is not None:
             if self.surface is not None:
-                shift = self.surface.project_shift(shift)
-            step = step + shift
-        s.x = self.domain.wrap(s.x + step)
+                shift = self.surface.project_shift(shift, self.fluid.rows_f)
+            x_new = x_new.index_add_(0, self.fluid.rows_f, shift)
+        s.x = self.domain.wrap(x_new)
         if self.feeder is not None:  # new particles enter at t + dt
             new = self.feeder.new_particles(self, self.t + dt)
             if new is not None and new.n:
@@ -419,7 +426,8 @@ class Simulation:
                     v_half = torch.cat([v_half, new.v])
                     v_tilde = torch.cat([v_tilde, new.v])
                     if self.thermal is not None:
-                        H_half = torch.cat([H_half, self.thermal.to_enthalpy(new.T)])
+                        H_half = torch.cat([whole_H_half() if H_half is None else H_half,
+                                            self.thermal.to_enthalpy(new.T)])
                     if perm is not None:  # a decomposition keeps its own rows first
                         v_half, v_tilde = v_half.index_select(0, perm), v_tilde.index_select(0, perm)
                         if self.thermal is not None:
@@ -428,11 +436,12 @@ class Simulation:
                 s = self.state
         due = None
         if self.escape is not None:  # at a rebuild point: particles that have left the scene go
-            due, keep = self._remove_escaped(self.t + dt, H_half if self.thermal is not None else None)
+            due, keep = self._remove_escaped(self.t + dt, (lambda: whole_H_half() if H_half is None else H_half)
+                                             if self.thermal is not None else None)
             if keep is not None:
                 v_half, v_tilde = v_half[keep], v_tilde[keep]
                 if self.thermal is not None:
-                    H_half = H_half[keep]
+                    H_half = (whole_H_half() if H_half is None else H_half)[keep]
                     new_row = torch.cumsum(keep.long(), 0) - 1
                     rows0 = new_row.index_select(0, rows0[keep.index_select(0, rows0)])
                 fm = self.fluid_mask.unsqueeze(-1)
@@ -446,7 +455,7 @@ class Simulation:
             if self.t + dt < self.damping_time:
                 self.dvdt = self.dvdt - self._damping_rate(self.t + dt) * torch.where(
                     fm, v_tilde, torch.zeros_like(v_tilde))
-        s.v = v_half + 0.5 * dt * self.dvdt  # 3c
+        s.v = v_half.add_(self.dvdt, alpha=0.5 * dt)  # 3c (v_half is this step's own array)
         if self._new_body_velocity:  # a body's velocity was changed during the step (a feed starts)
             self._new_body_velocity = False
             solid = (s.phase == Phase.SOLID).unsqueeze(-1)
@@ -458,8 +467,12 @@ class Simulation:
                 self.energy[k] = self.energy.get(k, 0.0) + 0.5 * dt * (self._heat[k] + v)
             self._heat = heat
             rows = th.rows if th.rows is rows0 else torch.unique(torch.cat([rows0, th.rows]))
+            if H_half is None and rows is rows0:
+                Hh = H_half_r
+            else:
+                Hh = (whole_H_half() if H_half is None else H_half).index_select(0, rows)
             s.T = s.T.index_copy(0, rows, th.to_temperature(  # 3b
-                H_half.index_select(0, rows) + 0.5 * dt * self.dTdt.index_select(0, rows), s.T.index_select(0, rows)))
+                Hh + 0.5 * dt * self.dTdt.index_select(0, rows), s.T.index_select(0, rows)))
             s.T_peak = s.T_peak.index_copy(0, rows, torch.maximum(s.T_peak.index_select(0, rows), s.T.index_select(0, rows)))
         self.t += dt
         self.step += 1
@@ -601,7 +614,7 @@ class Simulation:
         particles outside the scene (``escape.outside``), booking their mass and stored energy
         (``escaped``, a loss in the energy balance). Every process removes the same particles
         (owned rows and their ghost copies, by id). Returns (whether a rebuild is due, the
-        kept-rows mask or None). ``H_half``: the specific enthalpy at the half step, what the
+        kept-rows mask or None). ``H_half()``: the specific enthalpy at the half step, what the
         particles hold in the energy balance at this point of the step (the flows to them are
         booked up to it)."""
         due = self._stale or self.nl.needs_rebuild(self.state.x, self._moving_rows())
@@ -619,7 +632,7 @@ class Simulation:
         keep = ~torch.isin(s.id, ids.to(s.id.device))
         self.escape.book(int(mine.sum()), float(s.m[mine].sum()))
         if self.thermal is not None:
-            lost = (s.m * H_half)[mine].sum()
+            lost = (s.m * H_half())[mine].sum()
             self.energy["escaped"] = self.energy.get("escaped", 0.0) - lost
             th = self.thermal  # neighbours change: the geometry is evaluated afresh
             th._zeta_ok = th._area_ok = None

@@ -132,9 +132,10 @@ class SurfaceForces:
         prm = self.prm
         return (prm.tension + prm.dtension_dT * (T - prm.reference_temperature)).clamp_min(0.0)
 
-    def accelerations(self, state: ParticleState, terms: bool = False):
+    def accelerations(self, state: ParticleState, terms: bool = False, rows_only: bool = False):
         """Accelerations (N, d) from the surface forces at ``state``; with ``terms`` also a
-        dict by force. Sets ``normal``, ``kappa`` and ``n_surface``."""
+        dict by force; with ``rows_only`` (rows, accelerations of those rows) instead (the
+        others are zero). Sets ``normal``, ``kappa`` and ``n_surface``."""
         prm, n, d = self.prm, state.n, state.dim
         x, m, rho = state.x, state.m, state.rho
         zero = torch.zeros_like(x)
@@ -144,16 +145,19 @@ class SurfaceForces:
         sel = torch.nonzero(on).squeeze(1)
         rows = self.rows_f.index_select(0, sel)
         self.n_surface = rows.numel()
-        self.normal = zero.clone()
+        self.normal = zero  # (zero off the surface rows; written in place below)
         self.kappa = torch.zeros_like(rho)
         parts = {}
         if rows.numel() == 0:
+            if rows_only:
+                return rows, zero[:0]
+            zero = zero.clone()  # (not the normal itself)
             return (zero, {"surface_tension": zero}) if terms else zero
         nb = self.nb_f.index_select(0, sel)
         gs, gns = g.index_select(0, sel), gn.index_select(0, sel)
         n_out = -gs / gns.unsqueeze(-1)
-        self.normal = self.normal.index_copy(0, rows, n_out)
-        flag = torch.zeros_like(rho).index_fill(0, rows, 1.0)  # surface fluid particles
+        self.normal.index_copy_(0, rows, n_out)
+        flag = torch.zeros_like(rho).index_fill_(0, rows, 1.0)  # surface fluid particles
         # force per unit mass = (force per area) x A_i / m_i = (force per area) |grad c| / (rho D)
         per_area = (gns / (rho.index_select(0, rows) * self.delta_norm)).unsqueeze(-1)
         a = torch.zeros_like(n_out)
@@ -164,12 +168,12 @@ class SurfaceForces:
                                       self.mask_f.index_select(0, sel).to(rho.dtype), self.kernel,
                                       self.h, self.domain)
             nsm = nsm / nsm.norm(dim=-1, keepdim=True).clamp_min(1e-30)
-            nfield = self.normal.index_copy(0, rows, nsm)
+            nfield = torch.zeros_like(x).index_copy_(0, rows, nsm)  # (read at surface rows only)
             gradn = solve_gradient(*self._fns["moments"](x, nfield, flag, m, rho, rows, nb, self.kernel,
                                                          self.h, self.domain))
             kappa = torch.diagonal(gradn, dim1=-2, dim2=-1).sum(-1)
             kappa = kappa / (1.0 + self.band_depth * kappa / (d - 1)).clamp_min(0.5)
-            self.kappa = self.kappa.index_copy(0, rows, kappa)
+            self.kappa.index_copy_(0, rows, kappa)
             alpha = self.tension(state.T.index_select(0, rows))
             parts["surface_tension"] = -(alpha * kappa).unsqueeze(-1) * n_out * per_area
             a = a + parts["surface_tension"]
@@ -194,6 +198,8 @@ class SurfaceForces:
             F = (mr * a).sum(0)
             parts["zero_net_force"] = -(F / (mr * per_area).sum(0).clamp_min(1e-300)) * per_area
             a = a + parts["zero_net_force"]
+        if rows_only:
+            return rows, a
         out = embed(rows, a, n)
         if not terms:
             return out
@@ -210,12 +216,14 @@ class SurfaceForces:
         lim = 0.25 * torch.sqrt(rho_min * self.h**3 / (2.0 * math.pi * amax))
         return torch.where(amax > 0, lim, torch.full_like(lim, math.inf))
 
-    def project_shift(self, shift: torch.Tensor) -> torch.Tensor:
+    def project_shift(self, shift: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         """Particle shifting on the free surface only along it: (I - n n) dr (Lind et al. 2012),
-        so that shifting does not push surface particles out of the fluid."""
+        so that shifting does not push surface particles out of the fluid (``shift``: of the
+        particles ``rows``)."""
         if self.normal is None:
             return shift
-        return shift - dot(shift, self.normal).unsqueeze(-1) * self.normal
+        nrm = self.normal.index_select(0, rows)
+        return shift - dot(shift, nrm).unsqueeze(-1) * nrm
 
 
 __all__ = ["SurfaceParams", "SurfaceForces", "corrected_gradient_pairs"]
