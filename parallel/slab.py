@@ -13,9 +13,9 @@ the order of floating-point sums.
 All ranks rebuild their neighbour lists at the same steps (a global decision), so the
 per-rebuild caches match the single-process run; at the start of the step after a
 rebuild, particles migrate to the rank owning their slab and the ghost sets are chosen
-anew (the neighbour tables are carried over by particle id). Slab boundaries start at
-equal particle counts and are moved, every ``rebalance_every`` migrations, to equal
-measured cost (per-particle cost weights: fluid, surface, conducting solid, idle solid).
+anew (the neighbour tables are built again over the working particles at the reference positions). Slab boundaries start at
+equal particle counts and are moved to equal measured cost (per-particle costs of fluid,
+working solid and idle solid fitted to the ranks' measured work, :meth:`SlabComm.migrate`).
 """
 from __future__ import annotations
 
@@ -27,8 +27,6 @@ import traceback
 import numpy as np
 import torch
 from mpi4py import MPI
-
-from torchsph.neighbors import NeighbourTable
 
 STATE_PREFIX = "state."
 
@@ -96,6 +94,8 @@ class SlabComm:
         self.imbalance = []  # per migration: max / mean over ranks of the work since the last one
         self._owned_cache = (None, None)
         self._t0 = None
+        self._seen = None  # (selections, rows) at the last ghost refresh: a full one when either changed
+        self.n_refresh = [0, 0]  # ghost refreshes: full, of the working ghosts only
 
     # --- the SerialComm interface --------------------------------------------------------
     def owned(self, sim) -> torch.Tensor:
@@ -288,14 +288,33 @@ class SlabComm:
         return {k: torch.cat([b[k].to(mine[k].dtype) for b in blocks]) for k in mine}
 
     def refresh(self, sim):
-        """Ghost rows take their owners' current values of every per-particle array."""
+        """Ghost rows take their owners' current values of every per-particle array.
+
+        Between pair selections only the ghosts whose owners are in the active set's work set
+        (or fluid) are sent: a particle outside it is rigid cold solid, which no pair term
+        reads and whose only change in a step, x + dt v with its body's velocity, every rank
+        computes alike. After a selection (a rebuild, a phase change), a migration or a change
+        of rows every ghost is sent."""
         arrays = sim.particle_arrays()
-        out = [{k: _np(v.index_select(0, self.send[q])) for k, v in arrays.items()} if q != self.rank else {}
+        key = (sim.n_selections, sim.state.n)
+        hot = None
+        if key == self._seen and "as.work" in arrays:
+            hot = arrays["as.work"] | (sim.state.phase == 0)
+        self._seen = key
+        self.n_refresh[hot is not None] += 1
+        send = self.send if hot is None else [s[hot.index_select(0, s)] if s.numel() else s for s in self.send]
+        out = [{k: _np(v.index_select(0, send[q])) for k, v in arrays.items()} if q != self.rank else {}
                for q in range(self.size)]
+        if hot is not None:  # which of the ghost list's entries come
+            for q in range(self.size):
+                if q != self.rank:
+                    out[q]["_pos"] = _np(torch.nonzero(hot.index_select(0, self.send[q])).squeeze(1))
         got = self.c.alltoall(out)
         changed = {}
         for q, g in enumerate(got):
             rows = self.recv[q]
+            if "_pos" in g:
+                rows = rows.index_select(0, torch.as_tensor(g.pop("_pos"), dtype=torch.long))
             if rows.numel() == 0:
                 continue
             for k, v in g.items():
@@ -306,45 +325,50 @@ class SlabComm:
         if changed:
             sim.set_particle_arrays(changed)
 
+    # a migration moves the slab boundaries when the ranks' work differs by more than this
+    REBALANCE_ABOVE = 1.1
+
     def migrate(self, sim):
         """After a rebuild: particles move to the rank of their slab, ghosts are chosen anew,
-        the neighbour table is carried over by particle id, the caches restored."""
+        the neighbour table is built again over the working particles at the reference
+        positions (the pairs the single-process table holds; cost ∝ the work set, where
+        carrying every row by particle id cost ∝ all particles), the caches restored.
+
+        Load balance: each rank's work since the last migration (its step time less the
+        time spent waiting in communication) is fitted to per-particle costs of its owned
+        fluid, working solid and idle (left out) solid particles (fluid 4 x working solid, the
+        other two by least squares over the ranks); every ``rebalance_every`` migrations, or
+        at any migration where the work differs by more than :attr:`REBALANCE_ABOVE`, the
+        boundaries move to equal shares of that cost."""
         self.n_migrations += 1
-        times = self.c.allgather(self.busy)
-        self.busy = 0.0
-        if max(times) > 0:
-            self.imbalance.append(max(times) / (sum(times) / len(times)))
         arrays, _ = self._common_arrays(sim)
-        old_ids = arrays["state.id"]
-        nb_dense, nb_mask = sim.nl.table.to_dense()
-        nb_ids = old_ids[nb_dense]  # neighbour table in particle ids
         n = self.n_owned
         owned_arrays = {k: v[:n] for k, v in arrays.items()}
-        owned_arrays["_nb"] = nb_ids[:n]
-        owned_arrays["_mask"] = nb_mask[:n]
-        if self.rebalance_every and self.n_migrations % self.rebalance_every == 0:
-            fl = (owned_arrays["state.phase"] == 0).numpy()
-            w = np.where(fl, self.weights["fluid"], self.weights["solid"])
-            if "as.work" in owned_arrays:  # solid left out of the work costs (almost) nothing
-                w = np.where(fl | _np(owned_arrays["as.work"]), w, self.weights["idle"])
+        fl = owned_arrays["state.phase"] == 0
+        work = owned_arrays["as.work"] if "as.work" in owned_arrays else torch.ones_like(fl)
+        counts = [int(fl.sum()), int((work & ~fl).sum()), int((~work & ~fl).sum())]
+        stats = self.c.allgather((self.busy, counts))
+        self.busy = 0.0
+        times = np.array([t for t, _ in stats])
+        imb = float(times.max() / times.mean()) if times.max() > 0 else 1.0
+        if times.max() > 0:
+            self.imbalance.append(imb)
+        if self.rebalance_every and (self.n_migrations % self.rebalance_every == 0 or imb > self.REBALANCE_ABOVE):
+            self._fit_weights(times, np.array([c for _, c in stats], dtype=np.float64))
+            w = np.where(_np(fl), self.weights["fluid"], np.where(_np(work), self.weights["solid"], self.weights["idle"]))
             self.bounds = self.equal_bounds(_np(owned_arrays["state.x"])[:, 0], w)
-        k = max(self.c.allgather(int(nb_ids.shape[1])))
-        pad = k - owned_arrays["_nb"].shape[1]
-        if pad:
-            owned_arrays["_nb"] = torch.cat([owned_arrays["_nb"], owned_arrays["state.id"][:, None].expand(-1, pad)], 1)
-            owned_arrays["_mask"] = torch.cat([owned_arrays["_mask"], torch.zeros(n, pad, dtype=torch.bool)], 1)
         new = self.distribute(owned_arrays)
-        ids = new["state.id"]
-        order = torch.argsort(ids)
-        pos = torch.searchsorted(ids[order], new["_nb"].reshape(-1)).clamp_max(ids.numel() - 1)
-        found = ids[order][pos] == new["_nb"].reshape(-1)
-        local = torch.where(found, order[pos], torch.arange(ids.numel()).repeat_interleave(k))
-        nb = local.view(-1, k)
-        mask = new["_mask"] & found.view(-1, k)
-        own_row = torch.arange(ids.numel()).unsqueeze(1).expand(-1, k)
-        sim.nl.table = NeighbourTable.dense(torch.where(mask, nb, own_row).contiguous(), mask)
-        del new["_nb"], new["_mask"]
-        sim.rearm(new)  # caches some ranks lacked (dropped) are rebuilt whole everywhere
+        sim.rearm(new, table=lambda: self.table_at_reference(sim))
+
+    def _fit_weights(self, times: np.ndarray, counts: np.ndarray):
+        """Per-particle costs (fluid, working solid, idle solid) from the ranks' measured
+        work; the last ones are kept where the ranks' mixes do not tell them apart."""
+        A = np.stack([4.0 * counts[:, 0] + counts[:, 1], counts[:, 2]], 1)
+        if np.linalg.matrix_rank(A) < 2:
+            return
+        (c_work, c_idle), *_ = np.linalg.lstsq(A, times, rcond=None)
+        if c_work > 0 and c_idle > 0:
+            self.weights = {"fluid": 4.0 * c_work, "solid": float(c_work), "idle": float(c_idle)}
 
     # --- gathering ----------------------------------------------------------------------------
     def _common_arrays(self, sim):

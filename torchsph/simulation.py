@@ -277,7 +277,10 @@ class Simulation:
     def active_mask(self) -> torch.Tensor | None:
         return self.active_set.active if self.active_set is not None else None
 
+    n_selections = 0  # pair selections so far (a decomposition refreshes every ghost after one)
+
     def _select(self, new_table: bool = False):
+        self.n_selections += 1
         if self.fluid is not None:
             self.fluid.select_pairs(self.state, self.nl.table, level=self.comm.levels(self),
                                     depth=getattr(self.comm, "depth", 2))
