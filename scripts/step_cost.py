@@ -44,8 +44,9 @@ def main():
     _, sim = make_simulation(cfg, comm=comm)
     setup = time.perf_counter() - t0
     ranks = 1 if comm is None else comm.size
+    n_all = sim.state.n if comm is None else int(sum_([comm.n_owned])[0])  # (a collective: every rank)
     if root:
-        print(f"{a.case}: {sim.state.n if comm is None else int(sum_([comm.n_owned])[0])} particles, "
+        print(f"{a.case}: {n_all} particles, "
               f"{ranks} process(es), set-up {setup:.1f} s")
         print(f"{'t_ms':>7} {'steps':>6} {'ms/step':>8} {'rebuilds':>8} {'active':>8} {'work':>8}")
     rows = []
