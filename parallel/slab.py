@@ -262,9 +262,12 @@ class SlabComm:
             mine = {k: v[torch.as_tensor(own)] for k, v in arrays.items()}
         else:
             dest = np.searchsorted(self.bounds, x, side="right") - 1
-            out = [{k: _np(v[torch.as_tensor(dest == q)]) for k, v in arrays.items()} for q in range(self.size)]
+            stay = torch.as_tensor(dest == self.rank)  # (kept here as they are: not pickled to itself)
+            out = [{k: _np(v[torch.as_tensor(dest == q)]) for k, v in arrays.items()} if q != self.rank else {}
+                   for q in range(self.size)]
             got = self.c.alltoall(out)
-            mine = {k: torch.as_tensor(np.concatenate([g[k] for g in got])) for k in arrays}
+            got[self.rank] = {k: v[stay] for k, v in arrays.items()}
+            mine = {k: torch.cat([torch.as_tensor(g[k]) for g in got]) for k in arrays}
         order = torch.argsort(mine["state.id"])  # a deterministic order: by particle id
         mine = {k: v[order] for k, v in mine.items()}
         self.n_owned = int(mine["state.id"].shape[0])
