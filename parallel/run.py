@@ -36,9 +36,9 @@ def _state_from(arrays: dict) -> ParticleState:
 def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | None = None):
     """Gather everything by particle id on rank 0 and write it atomically there."""
     arrays = comm.gather_owned(sim)
-    ek, hk = (comm.union_keys(sim.energy), comm.union_keys(sim._heat)) if sim.thermal is not None else ([], [])
-    sums = comm.sum([float(sim.energy.get(k, 0.0)) for k in ek] + [float(sim._heat.get(k, 0.0)) for k in hk]
-                    + [float(sim._E0)]) if sim.thermal is not None else []
+    ek, hk = (comm.union_keys(sim.energy), comm.union_keys(sim.heat_totals)) if sim.thermal is not None else ([], [])
+    sums = comm.sum([float(sim.energy.get(k, 0.0)) for k in ek] + [float(sim.heat_totals.get(k, 0.0)) for k in hk]
+                    + [float(sim.E0)]) if sim.thermal is not None else []
     feeder = None
     if sim.feeder is not None:  # the contact counts are each rank's own: the checkpoint holds the totals
         feeder = sim.feeder.state_dict()
@@ -55,7 +55,7 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | Non
          "energy": dict(zip(ek, sums[:len(ek)])), "heat": dict(zip(hk, sums[len(ek):len(ek) + len(hk)])),
          "E0": sums[-1] if sums else None,
          "n_builds": sim.nl.n_builds, "rng": torch.get_rng_state(), "extra": extra, "written": time.time(),
-         "body_velocity": sim.body_velocity.cpu(), "stale": sim._stale,
+         "body_velocity": sim.body_velocity.cpu(), "stale": sim.stale,
          "feeder": feeder, "escape": escape}
     write(d, path)
 
@@ -75,7 +75,7 @@ def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | No
         if bv.shape[0] < sim.body_velocity.shape[0]:  # (written before every rank held every body's row)
             bv = torch.cat([bv, sim.body_velocity[bv.shape[0]:]])
         sim.body_velocity = bv
-        sim._stale = d["stale"]
+        sim.stale = d["stale"]
     if sim.feeder is not None and d.get("feeder") is not None:
         sim.feeder.load_state_dict(d["feeder"])
         if comm.rank != 0:  # the totals stay on rank 0; each rank counts its own from here
@@ -87,10 +87,10 @@ def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | No
     if sim.thermal is not None:
         z = torch.zeros((), dtype=dt)
         sim.energy = {k: torch.tensor(v, dtype=dt) if first else z for k, v in d["energy"].items()}
-        sim._heat = {k: torch.tensor(v, dtype=dt) if first else z for k, v in d["heat"].items()}
-        sim._E0 = d["E0"] if first else 0.0
+        sim.heat_totals = {k: torch.tensor(v, dtype=dt) if first else z for k, v in d["heat"].items()}
+        sim.E0 = d["E0"] if first else 0.0
     torch.set_rng_state(d["rng"])
-    sim.info = sim._measure()
+    sim.info = sim.measure()
     return {**d.get("extra", {}), "step_control_changes": changes}
 
 

@@ -73,6 +73,29 @@ class _TimedComm:
         return timed
 
 
+def equal_bounds(comm, size: int, x: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Slab boundaries at equal (weighted) shares of all ranks' particles along x."""
+    w = np.ones_like(x) if w is None else w
+    xs = np.concatenate(comm.allgather(x))
+    ws = np.concatenate(comm.allgather(w))
+    order = np.argsort(xs, kind="stable")
+    cw = np.cumsum(ws[order])
+    b = [-np.inf]
+    for r in range(1, size):
+        k = int(np.searchsorted(cw, cw[-1] * r / size))
+        k = min(max(k, 0), xs.size - 1)
+        b.append(xs[order][k])
+    return np.array(b + [np.inf])
+
+
+def common_arrays(comm, sim):
+    """The per-particle arrays every rank holds (lazily built caches may exist on some ranks
+    only), and the names of the ones left out here."""
+    arrays = sim.particle_arrays()
+    common = set.intersection(*comm.allgather(set(arrays)))
+    return {k: v for k, v in arrays.items() if k in common}, [k for k in arrays if k not in common]
+
+
 class SlabComm:
     """The :class:`torchsph.comm.SerialComm` interface over MPI ranks (see the module doc)."""
 
@@ -229,27 +252,13 @@ class SlabComm:
         if self._t0 is not None:
             self.busy += (t - self._t0[0]) - (w - self._t0[1])
         self._t0 = (t, w)
-        if sim._rebuilt:
+        if sim.rebuilt:
             self.migrate(sim)
 
     def end_step(self, sim):
         self.refresh(sim)
 
     # --- decomposition ----------------------------------------------------------------------
-    def equal_bounds(self, x: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
-        """Slab boundaries at equal (weighted) shares of all ranks' particles along x."""
-        w = np.ones_like(x) if w is None else w
-        xs = np.concatenate(self.c.allgather(x))
-        ws = np.concatenate(self.c.allgather(w))
-        order = np.argsort(xs, kind="stable")
-        cw = np.cumsum(ws[order])
-        b = [-np.inf]
-        for r in range(1, self.size):
-            k = int(np.searchsorted(cw, cw[-1] * r / self.size))
-            k = min(max(k, 0), xs.size - 1)
-            b.append(xs[order][k])
-        return np.array(b + [np.inf])
-
     def distribute(self, arrays: dict[str, torch.Tensor], first: bool = False):
         """New local arrays: this rank's owned particles (rows of ``arrays`` it owns now, or
         with ``first`` the whole replicated set) sent to their slab's rank, then the ghosts.
@@ -257,7 +266,7 @@ class SlabComm:
         x = _np(arrays["state.x"])[:, 0]
         if first:  # every rank holds every particle: take the ones of this slab directly
             if self.bounds is None:
-                self.bounds = self.equal_bounds(x if self.rank == 0 else x[:0])
+                self.bounds = equal_bounds(self.c, self.size, x if self.rank == 0 else x[:0])
             own = (np.searchsorted(self.bounds, x, side="right") - 1) == self.rank
             mine = {k: v[torch.as_tensor(own)] for k, v in arrays.items()}
         else:
@@ -337,14 +346,18 @@ class SlabComm:
         positions (the pairs the single-process table holds; cost ∝ the work set, where
         carrying every row by particle id cost ∝ all particles), the caches restored.
 
-        Load balance: each rank's work since the last migration (its step time less the
-        time spent waiting in communication) is fitted to per-particle costs of its owned
-        fluid, working solid and idle (left out) solid particles (fluid 4 x working solid, the
-        other two by least squares over the ranks); every ``rebalance_every`` migrations, or
-        at any migration where the work differs by more than :attr:`REBALANCE_ABOVE`, the
-        boundaries move to equal shares of that cost."""
+        Load balance: a rank's work is modelled from the particles it owns, per-particle
+        costs of fluid, working solid and idle (left out) solid (:attr:`weights`); every
+        ``rebalance_every`` migrations, or at any migration where the modelled work of the
+        ranks differs by more than :attr:`REBALANCE_ABOVE`, the boundaries move to equal
+        shares of it. The decisions read no clock, so the decomposition, and with it every
+        rounding, is a function of the state alone: a run repeats bit for bit and a restart
+        continues it exactly (costs fitted to measured step times, tried at dc34313, made
+        the slab bounds depend on timing and 2-rank runs differ by 1e-9 from run to run).
+        The measured imbalance (step time less communication wait) is recorded for the
+        summary."""
         self.n_migrations += 1
-        arrays, _ = self._common_arrays(sim)
+        arrays, _ = common_arrays(self.c, sim)
         n = self.n_owned
         owned_arrays = {k: v[:n] for k, v in arrays.items()}
         fl = owned_arrays["state.phase"] == 0
@@ -353,38 +366,22 @@ class SlabComm:
         stats = self.c.allgather((self.busy, counts))
         self.busy = 0.0
         times = np.array([t for t, _ in stats])
-        imb = float(times.max() / times.mean()) if times.max() > 0 else 1.0
         if times.max() > 0:
-            self.imbalance.append(imb)
+            self.imbalance.append(float(times.max() / times.mean()))
+        c = np.array([cnt for _, cnt in stats], dtype=np.float64)
+        model = c @ np.array([self.weights["fluid"], self.weights["solid"], self.weights["idle"]])
+        imb = float(model.max() / model.mean()) if model.max() > 0 else 1.0
         if self.rebalance_every and (self.n_migrations % self.rebalance_every == 0 or imb > self.REBALANCE_ABOVE):
-            self._fit_weights(times, np.array([c for _, c in stats], dtype=np.float64))
             w = np.where(_np(fl), self.weights["fluid"], np.where(_np(work), self.weights["solid"], self.weights["idle"]))
-            self.bounds = self.equal_bounds(_np(owned_arrays["state.x"])[:, 0], w)
+            self.bounds = equal_bounds(self.c, self.size, _np(owned_arrays["state.x"])[:, 0], w)
         new = self.distribute(owned_arrays)
         sim.rearm(new, table=lambda: self.table_at_reference(sim))
 
-    def _fit_weights(self, times: np.ndarray, counts: np.ndarray):
-        """Per-particle costs (fluid, working solid, idle solid) from the ranks' measured
-        work; the last ones are kept where the ranks' mixes do not tell them apart."""
-        A = np.stack([4.0 * counts[:, 0] + counts[:, 1], counts[:, 2]], 1)
-        if np.linalg.matrix_rank(A) < 2:
-            return
-        (c_work, c_idle), *_ = np.linalg.lstsq(A, times, rcond=None)
-        if c_work > 0 and c_idle > 0:
-            self.weights = {"fluid": 4.0 * c_work, "solid": float(c_work), "idle": float(c_idle)}
-
     # --- gathering ----------------------------------------------------------------------------
-    def _common_arrays(self, sim):
-        """The per-particle arrays every rank holds (lazily built caches may exist on some
-        ranks only), and the names of the ones left out here."""
-        arrays = sim.particle_arrays()
-        common = set.intersection(*self.c.allgather(set(arrays)))
-        return {k: v for k, v in arrays.items() if k in common}, [k for k in arrays if k not in common]
-
     def gather_owned(self, sim, names=None) -> dict[str, np.ndarray] | None:
         """Rank 0: the owned rows of all ranks' per-particle arrays, in particle-id order
         (the arrays every rank holds)."""
-        arrays, _ = self._common_arrays(sim)
+        arrays, _ = common_arrays(self.c, sim)
         names = names or list(arrays)
         mine = {k: _np(arrays[k][: self.n_owned]) for k in names if k in arrays}
         got = self.c.gather(mine, root=0)

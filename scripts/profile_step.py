@@ -44,7 +44,7 @@ def main():
     t = time.perf_counter()
     run_steps(sim, steps=a.steps)
     el = time.perf_counter() - t
-    print(f"{sim.state.n} particles, {sim.n_pairs} pairs: {el / a.steps * 1e3:.2f} ms/step, "
+    print(f"{sim.state.n} particles, {sim.nl.table.n_pairs()} pairs: {el / a.steps * 1e3:.2f} ms/step, "
           f"{sim.state.n * a.steps / el:.3g} particle-steps/s")
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         run_steps(sim, steps=a.steps)

@@ -47,8 +47,8 @@ def main():
                            phase=torch.as_tensor(d["phase"], dtype=torch.int8),
                            id=torch.as_tensor(d["id"], dtype=torch.long), body=torch.as_tensor(d["body"], dtype=torch.long))
         sim.state = st
-        sim._refresh_pairs(force=True)
-        _, parts = sim._accelerations(st.v, terms=True)
+        sim.refresh_pairs(force=True)
+        _, parts = sim.accelerations(st.v, terms=True)
         sel = (st.phase == Phase.FLUID) & (st.x[:, :2].norm(dim=1) < a.r_max) & (st.x[:, 2] > a.z_min)
         n = int(sel.sum())
         if not n:

@@ -28,7 +28,7 @@ def fling(sim, ids):
     s.phase[rows], s.body[rows] = int(Phase.FLUID), 0
     sim.fluid_mask = s.phase == Phase.FLUID
     sim.n_fluid = int(sim.fluid_mask.sum())
-    sim._stale = True  # the next step is a rebuild point
+    sim.stale = True  # the next step is a rebuild point
 
 
 def run(case, k1, k2, overrides, comm=None):

@@ -323,19 +323,19 @@ def test_rigid_geometry_kept_across_rebuilds_equals_recomputing_it():
 
     def checked(name):
         def fn(state):
-            partial = th._zeta_prev if name == "zeta" else th._area_prev
+            partial = th.zeta_prev if name == "zeta" else th.area_prev
             v = fns[name](state)
             if partial is not None:
-                ok, n = getattr(th, f"_{name}_ok"), th.normal
-                kept.append(int((ok & th._rigid).sum()) / th.rows.numel())
-                setattr(th, f"_{name}_prev", None)  # the same rows, computed afresh
+                ok, n = getattr(th, f"{name}_ok"), th.normal
+                kept.append(int((ok & th.rigid).sum()) / th.rows.numel())
+                setattr(th, f"{name}_prev", None)  # the same rows, computed afresh
                 full = fns[name](state)
                 scale = 1.0 if name == "zeta" else float(full.abs().max())
                 worst[name] = max(worst[name], float((v - full).abs().max()) / scale)
                 if name == "area":
                     worst["normal"] = max(worst["normal"], float((n - th.normal).abs().max()))
                     th.normal = n
-                setattr(th, f"_{name}_ok", ok)
+                setattr(th, f"{name}_ok", ok)
             return v
         return fn
 
@@ -368,7 +368,7 @@ def test_rows_leaving_the_active_set_close_the_energy_balance():
         dropped.append(take)
 
     a.refresh = refresh
-    sim._stale = True  # a rebuild (and refresh) at the next step
+    sim.stale = True  # a rebuild (and refresh) at the next step
     run_steps(sim, steps=100)
     assert dropped
     e = sim.energy_balance()

@@ -17,7 +17,7 @@ from test_thermal import cloud_conduction
 
 def pair_sum(th, state, T):
     """The plain pair sum over the table on ``rows`` (R,)."""
-    return conduction_pairs(state.x, th.wall_temperature(state, T), th.k, state.m, state.rho, th._zeta, th.rows,
+    return conduction_pairs(state.x, th.wall_temperature(state, T), th.k, state.m, state.rho, th.zeta_cache, th.rows,
                             th.nb, th.kernel, th.h, th.domain)
 
 
@@ -62,7 +62,7 @@ def hot_spot_block():
 def test_operator_equals_the_pair_sum_on_a_cloud():
     """Random cloud, per-particle conductivity, one rigid body: every pair in the matrix."""
     st, c = cloud_conduction()
-    c._zeta = c.zeta(st)
+    c.zeta_cache = c.zeta(st)
     q = c.heat_rate(st, st.T)
     ref = embed(c.rows, pair_sum(c, st, st.T), st.n)
     assert float((q - ref).abs().max() / ref.abs().max()) < 1e-13

@@ -239,7 +239,7 @@ def test_zero_net_force_keeps_a_thermocapillary_drop_in_place():
         scene, sim = make_simulation(cfg)
         s = sim.state
         s.T = 300.0 + 1e5 * (s.x[:, 1] - s.x[:, 1].mean())
-        sim.dvdt = sim._accelerations(s.v)
+        sim.dvdt = sim.accelerations(s.v)
         run_steps(sim, t_end=0.003)
         s = sim.state
         u_com = (s.m.unsqueeze(-1) * s.v).sum(0) / s.m.sum()

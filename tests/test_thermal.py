@@ -146,7 +146,7 @@ def test_radiative_cooling_of_isothermal_slab_vs_ode():
     s = sim.state
     L = cfg["scene"]["size_m"]
     A = 2 * L[0] * L[1]
-    assert float(sim.thermal._area.sum()) == pytest.approx(A, rel=1e-9)
+    assert float(sim.thermal.area_cache.sum()) == pytest.approx(A, rel=1e-9)
     M, c, eps, T0 = float(s.m.sum()), 450.0, 0.4, 300.0
     run_steps(sim, t_end=0.5)
     T, n = 1500.0, 20000  # RK4 reference
@@ -172,7 +172,7 @@ def test_energy_balance_with_beam_radiation_and_evaporation():
     assert abs(e["residual_J"]) < 0.01 * e["beam_J"]
     # the losses act on the surface only: particles whose kernel support lies inside the
     # plate (more than 2 h from every face) have no surface area
-    area, x, h = sim.thermal._area, sim.state.x, sim.h
+    area, x, h = sim.thermal.area_cache, sim.state.x, sim.h
     lo, hi = sim.domain.lo, sim.domain.hi
     inner = torch.ones(x.shape[0], dtype=torch.bool)
     for a in range(3):

@@ -53,7 +53,7 @@ def _defaults(section: str, cfg: dict) -> dict:
         schema = spec.schema if spec is not None else {}
     else:
         schema = {"fluid": C.FLUID, "thermal": C.THERMAL, "surface": C.SURFACE, "numerics": C.NUMERICS}.get(section, {})
-    dflt = {k: key.default for k, key in schema.items() if key.default is not C._REQUIRED}
+    dflt = {k: key.default for k, key in schema.items() if key.default is not C.REQUIRED}
     if section == "numerics" and cfg.get("scene", {}).get("type") in SCENES:  # the scene's verified numerics
         dflt.update(SCENES[cfg["scene"]["type"]].numerics)
     return json.loads(json.dumps(dflt, default=str))
@@ -139,26 +139,26 @@ def snapshot(sim) -> dict:
         "dvdt": _cpu(sim.dvdt), "drhodt": _cpu(sim.drhodt),
         "dTdt": _cpu(sim.dTdt),
         "energy": {k: _cpu(v) if isinstance(v, torch.Tensor) else v for k, v in sim.energy.items()},
-        "heat": {k: _cpu(v) for k, v in getattr(sim, "_heat", {}).items()},
-        "E0": getattr(sim, "_E0", None),
+        "heat": {k: _cpu(v) for k, v in getattr(sim, "heat_totals", {}).items()},
+        "E0": getattr(sim, "E0", None),
         "body_velocity": _cpu(sim.body_velocity),
         "nl": {"x_ref": _cpu(sim.nl.x_ref), "table": {k: _cpu(v) if isinstance(v, torch.Tensor) else v
                                                       for k, v in sim.nl.table.state_dict().items()},
                "n_builds": sim.nl.n_builds, "n_partial": sim.nl.n_partial,
                "static": _cpu(sim.nl.static), "x_full": _cpu(sim.nl.x_full)},
         "rng": torch.get_rng_state(),
-        "stale": sim._stale,
+        "stale": sim.stale,
         "plan": {"steps": sim.plan.steps, "sums": sim.plan.sums},
     }
     if sim.active_set is not None:
         d["active"] = {k: _cpu(v) for k, v in sim.active_set.to_dict().items()}
     th = sim.thermal
     if th is not None:
-        d["thermal"] = {"T_set": _cpu(th.T_set), "steady": _cpu(th.steady), "x_op": _cpu(th.x_op), "zeta": _cpu(th._zeta), "area": _cpu(th._area),
+        d["thermal"] = {"T_set": _cpu(th.T_set), "steady": _cpu(th.steady), "x_op": _cpu(th.x_op), "zeta": _cpu(th.zeta_cache), "area": _cpu(th.area_cache),
                         "normal": _cpu(getattr(th, "normal", None)), "lit": _cpu(getattr(th, "lit", None)),
-                        "zeta_ok": _cpu(th._zeta_ok), "area_ok": _cpu(th._area_ok),
-                        "zeta_prev": _cpu(th._zeta_prev), "area_prev": _cpu(th._area_prev),
-                        "normal_prev": _cpu(th._normal_prev)}
+                        "zeta_ok": _cpu(th.zeta_ok), "area_ok": _cpu(th.area_ok),
+                        "zeta_prev": _cpu(th.zeta_prev), "area_prev": _cpu(th.area_prev),
+                        "normal_prev": _cpu(th.normal_prev)}
     sf = sim.surface_model
     if sf is not None:
         d["surface"] = {"normal": _cpu(sf.normal), "kappa": _cpu(sf.kappa)}
@@ -259,7 +259,7 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     sim.nl.n_partial = nl.get("n_partial", 0)
     sim.nl.static = to(nl["static"]) if nl.get("static") is not None else None
     sim.nl.x_full = to(nl["x_full"]) if nl.get("x_full") is not None else None
-    sim._stale = d.get("stale", False)
+    sim.stale = d.get("stale", False)
     if sim.active_set is not None and "active" in d:
         a = d["active"]
         sim.active_set.active, sim.active_set.work = to(a["active"]), to(a["work"])
@@ -272,15 +272,15 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     sim.dvdt, sim.drhodt, sim.dTdt = to(d["dvdt"]), to(d["drhodt"]), to(d["dTdt"])
     sim.energy = {k: to(v) for k, v in d["energy"].items()}
     if d.get("heat"):
-        sim._heat = {k: to(v) for k, v in d["heat"].items()}
+        sim.heat_totals = {k: to(v) for k, v in d["heat"].items()}
     if d.get("E0") is not None:
-        sim._E0 = d["E0"]
+        sim.E0 = d["E0"]
     caches = {}
     if th is not None and "thermal" in d:
         c = d["thermal"]
-        names = {"lit": "lit", "T_set": "T_set", "steady": "steady", "x_op": "x_op", "zeta": "_zeta", "area": "_area",
-                 "zeta_ok": "_zeta_ok", "area_ok": "_area_ok", "normal": "normal", "zeta_prev": "_zeta_prev",
-                 "area_prev": "_area_prev", "normal_prev": "_normal_prev"}
+        names = {"lit": "lit", "T_set": "T_set", "steady": "steady", "x_op": "x_op", "zeta": "zeta_cache",
+                 "area": "area_cache", "zeta_ok": "zeta_ok", "area_ok": "area_ok", "normal": "normal",
+                 "zeta_prev": "zeta_prev", "area_prev": "area_prev", "normal_prev": "normal_prev"}
         caches.update({f"th.{a}": to(c[k]) for k, a in names.items() if c.get(k) is not None})
     sf = sim.surface_model
     if sf is not None and "surface" in d:
@@ -288,7 +288,7 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     # pair subsets anew (a function of the table and the phases), the caches as they were
     sim.rearm(caches)
     torch.set_rng_state(d["rng"])
-    sim.info = sim._measure()
+    sim.info = sim.measure()
     return {**d.get("extra", {}), "step_control_changes": changes}
 
 

@@ -8,44 +8,10 @@ from __future__ import annotations
 import copy
 import math
 import tomllib
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 
-class CaseError(ValueError):
-    """A malformed case file or override (message: one line)."""
-
-
-_REQUIRED = object()
-
-
-@dataclass(frozen=True)
-class Key:
-    kind: str  # float | int | bool | str | vec
-    default: Any = _REQUIRED
-    gt: float | None = None  # value must be > gt
-    ge: float | None = None  # value must be >= ge
-    le: float | None = None  # value must be <= le
-    lt: float | None = None
-    choices: tuple | None = None
-    doc: str = ""
-
-    def allowed(self) -> str:
-        if self.choices is not None:
-            return "one of " + ", ".join(repr(c) for c in self.choices)
-        parts = {"float": "a number", "int": "an integer", "bool": "true or false",
-                 "str": "a string", "vec": "a list of numbers"}[self.kind]
-        bounds = []
-        if self.gt is not None:
-            bounds.append(f"> {self.gt:g}")
-        if self.ge is not None:
-            bounds.append(f">= {self.ge:g}")
-        if self.lt is not None:
-            bounds.append(f"< {self.lt:g}")
-        if self.le is not None:
-            bounds.append(f"<= {self.le:g}")
-        return parts + (" " + " and ".join(bounds) if bounds else "")
+from .schema import REQUIRED, CaseError, Key  # noqa: F401 (re-exported)
 
 
 def _fmt(v) -> str:
@@ -109,7 +75,7 @@ def validate_section(name: str, raw: dict, schema: dict[str, Key], dim: int | No
     for k, key in schema.items():
         where = f"[{name}] {k}"
         if k not in raw:
-            if key.default is _REQUIRED:
+            if key.default is REQUIRED:
                 raise CaseError(f"missing required key {where} ({key.allowed()}; {key.doc})")
             out[k] = copy.deepcopy(key.default)
             if key.kind == "vec" and out[k] is None and dim is not None:

@@ -13,6 +13,11 @@ import math
 
 import torch
 
+from .kernels import make_kernel
+from .lattice import Scene, lattice, solid_block
+from .limits import SimulationError
+from .neighbors import Domain
+from .schema import CaseError
 from .state import ParticleState, Phase
 
 SUBSTRATE, WIRE = 1, 2
@@ -176,7 +181,7 @@ class WireFeeder:
             if bool(weld.any()):
                 s.body = torch.where(weld, torch.full_like(s.body, SUBSTRATE), s.body)
                 s.v = torch.where(weld.unsqueeze(-1), sim.body_velocity[SUBSTRATE], s.v)
-                sim._new_body_velocity = True  # and keep it at the step's end
+                sim.new_body_velocity = True  # and keep it at the step's end
                 own = sim.comm.owned(sim)
                 mine = weld if own is None else weld & own
                 self.welded_kg += float(s.m[mine].sum())
@@ -194,7 +199,6 @@ class WireFeeder:
             return blocked
         z = torch.where(low, s.x[:, 2], torch.full_like(s.x[:, 2], math.inf))
         k = int(torch.argmin(z))
-        from .simulation import SimulationError
         where = (f"step {sim.step}, t = {sim.t:.6g} s: {{}} (particle id {int(s.id[k])}, z = {float(z[k]):.4g} m, "
                  f"r = {float(s.x[k, :2].norm()):.4g} m from the wire axis, T = {float(s.T[k]):.1f} K, peak "
                  f"{float(s.T_peak[k]):.1f} K)")
@@ -286,8 +290,6 @@ def source_beams(sc: dict) -> list[dict]:
 
 
 def build(cfg, dtype, device):
-    from .scenes import Scene, lattice, _solid
-    from .neighbors import Domain
 
     sc, fl = cfg["scene"], cfg["fluid"]
     dx = sc["dx_m"]
@@ -297,7 +299,7 @@ def build(cfg, dtype, device):
     origin = [off - counts[0] * dx, -counts[1] * dx / 2, -counts[2] * dx]
     xs = lattice(counts, dx, origin=origin, dtype=dtype, device=device)
     T0 = sc["temperature_K"]
-    sub = _solid(xs, fl, dx, 3, T0, dtype, device)
+    sub = solid_block(xs, fl, dx, 3, T0, dtype, device)
     sub.v[:] = torch.as_tensor(sc["substrate_velocity_m_s"], dtype=dtype, device=device)
     sub.body[:] = SUBSTRATE
     rho0 = fl["rho0_kg_m3"]
@@ -322,7 +324,6 @@ def build(cfg, dtype, device):
 
 
 def check(cfg):
-    from .config import CaseError
 
     sc = cfg["scene"]
     v = sc["substrate_velocity_m_s"]
@@ -344,7 +345,6 @@ def check(cfg):
                         "(set phase_change = true)")
     nm = cfg.get("numerics", {})
     if "kernel" in nm:
-        from .kernels import make_kernel
 
         reach = (make_kernel(nm["kernel"], 3).radius(nm["h_over_dx"] * sc["dx_m"])
                  + nm["skin_over_dx"] * sc["dx_m"])

@@ -279,7 +279,7 @@ class SerialRun:
         return value
 
     def summary(self, sim) -> dict:
-        return {"n_fluid": sim.n_fluid, "n_pairs": sim.n_pairs,
+        return {"n_fluid": sim.n_fluid, "n_pairs": sim.nl.table.n_pairs(),
                 "neighbour_partial_builds": sim.nl.n_partial,
                 "active_fraction": sim.plan.report(),
                 "active_set_refreshes": sim.active_set.n_refresh if sim.active_set is not None else None,

@@ -6,52 +6,15 @@ supports, a cross-key check, and a builder. No code per case: cases are TOML onl
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import torch
 
-from .config import CaseError, Key
+from . import deposition
+from .lattice import Scene, SceneSpec, lattice, solid_block, tait_density  # noqa: F401 (re-exported)
+from .schema import CaseError, Key
 from .neighbors import Domain
 from .state import ParticleState, Phase
-
-
-@dataclass
-class Scene:
-    state: ParticleState
-    domain: Domain
-    dx: float
-    info: dict = field(default_factory=dict)
-
-
-@dataclass
-class SceneSpec:
-    schema: dict
-    dims: tuple
-    build: Callable
-    check: Callable | None = None
-    doc: str = ""
-    has_fluid: bool = True
-    needs_thermal: bool = False
-    # the [numerics] the scene's verification measured: a case that names no numerics gets these
-    numerics: dict = field(default_factory=dict)
-
-
-def lattice(counts, dx, origin=None, dtype=torch.float64, device="cpu"):
-    """Cell-centred lattice points: origin + (k + 1/2) dx for k in range(count) per axis."""
-    axes = [(torch.arange(n, dtype=dtype, device=device) + 0.5) * dx for n in counts]
-    g = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, len(counts))
-    if origin is not None:
-        g = g + torch.as_tensor(origin, dtype=dtype, device=device)
-    return g
-
-
-def tait_density(p, fl):
-    """Inverse Tait EOS for initial conditions."""
-    B = fl["c0_m_s"] ** 2 * fl["rho0_kg_m3"] / fl["gamma"]
-    return fl["rho0_kg_m3"] * ((p - fl["background_pressure_Pa"]) / B + 1.0).clamp_min(1e-3) ** (
-        1.0 / fl["gamma"])
 
 
 def _support_cells(cfg) -> float:
@@ -220,12 +183,6 @@ def check_hydrostatic_tank(cfg):
 
 
 # --- thermal verification scenes --------------------------------------------------
-def _solid(x, fl, dx, d, T, dtype, device, id0=0, phase=Phase.SOLID):
-    rho0 = fl["rho0_kg_m3"]
-    return ParticleState.create(x, torch.zeros_like(x), rho0, rho0 * dx**d, phase, T=T,
-                                id=torch.arange(x.shape[0]) + id0, dtype=dtype, device=device)
-
-
 def _cross_section(cfg) -> int:
     """Particles across a periodic cross-section: two search radii, rounded up."""
     return math.ceil(2.0 * _support_cells(cfg)) + 1
@@ -246,8 +203,8 @@ def build_conduction_1d(cfg, dtype, device) -> Scene:
     xs = lattice([nx] + [nc] * (d - 1), dx, dtype=dtype, device=device)
     xw = lattice([layers] + [nc] * (d - 1), dx, origin=[-layers * dx] + [0.0] * (d - 1),
                  dtype=dtype, device=device)
-    solid = _solid(xs, fl, dx, d, sc["initial_temperature_K"], dtype, device)
-    wall = _solid(xw, fl, dx, d, sc["face_temperature_K"], dtype, device, id0=xs.shape[0],
+    solid = solid_block(xs, fl, dx, d, sc["initial_temperature_K"], dtype, device)
+    wall = solid_block(xw, fl, dx, d, sc["face_temperature_K"], dtype, device, id0=xs.shape[0],
                   phase=Phase.WALL)
     lo = [-layers * dx] + [0.0] * (d - 1)
     hi = [L] + [nc * dx] * (d - 1)
@@ -286,7 +243,7 @@ def build_gaussian_bump(cfg, dtype, device) -> Scene:
     center = [0.5 * L] * d
     T = gaussian_bump_exact(x, 0.0, alpha, center, sc["sigma_m"], sc["amplitude_K"],
                             sc["background_K"], dom)
-    return Scene(_solid(x, fl, dx, d, T, dtype, device), dom, dx,
+    return Scene(solid_block(x, fl, dx, d, T, dtype, device), dom, dx,
                  {"alpha": alpha, "center": center, "sigma": sc["sigma_m"], "A": sc["amplitude_K"],
                   "Tb": sc["background_K"]})
 
@@ -311,7 +268,7 @@ def build_block(cfg, dtype, device) -> Scene:
     if sc["shape"] == "sphere":  # the ball inscribed in the box
         c = torch.tensor([0.0, 0.0, -counts[2] * dx / 2], dtype=dtype, device=device)
         x = x[((x - c) ** 2).sum(-1) < (0.5 * min(counts) * dx) ** 2]
-    st = _solid(x, fl, dx, 3, sc["temperature_K"], dtype, device)
+    st = solid_block(x, fl, dx, 3, sc["temperature_K"], dtype, device)
     st.v[:] = torch.as_tensor(sc["velocity_m_s"], dtype=dtype, device=device)  # rigid motion
     st.body[:] = 1  # the block is body 1
     lo = origin
@@ -431,17 +388,12 @@ SCENES: dict[str, SceneSpec] = {
          "source_azimuth_deg": Key("float", default=45.0, ge=0, lt=90, doc="tilt from the vertical"),
          "source_aim_height_m": Key("float", default=None,
                                     doc="height of the aim point on the wire axis (default: the tip, wire_gap_m)")},
-        (3,), lambda cfg, dtype, device: _deposition().build(cfg, dtype, device),
-        lambda cfg: _deposition().check(cfg),
+        (3,), lambda cfg, dtype, device: deposition.build(cfg, dtype, device),
+        lambda cfg: deposition.check(cfg),
         "substrate moving under a fed wire, sources aimed at the wire tip",
         has_fluid=False, needs_thermal=True,
         numerics={"density_diffusion": 0.1}),  # as in the four thesis cases
 }
-
-
-def _deposition():
-    from . import deposition
-    return deposition
 
 
 def build_scene(cfg, dtype=torch.float64, device="cpu") -> Scene:

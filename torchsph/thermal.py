@@ -255,8 +255,8 @@ class Conduction:
         # Laplacian normalisation and surface area per particle (and the surface normal):
         # recomputed after each neighbour rebuild, except where they cannot have changed
         self._mark_rigid(state, table, work)
-        self._zeta = None
-        self._area = None
+        self.zeta_cache = None
+        self.area_cache = None
         self.rows = torch.nonzero(~wall if active is None else ~wall & active).squeeze(1)
         self.nb, mask_r = table.gather(self.rows, within=True)
         solid = state.phase == Phase.SOLID
@@ -312,10 +312,15 @@ class Conduction:
     # still hold (to round-off) and are kept. Phase changes re-select, so a neighbour that
     # melts marks the particle; particles added (a fed wire's layer) give old rows new
     # neighbours of their own body, so the next rebuild recomputes every row.
-    _zeta_ok = _area_ok = None  # per particle: the cached value holds and was computed rigid
+    zeta_ok = area_ok = None  # per particle: the cached value holds and was computed rigid
     steady = None  # per particle: solid with no phase change since the conduction matrix was made
     x_op = None  # per particle: the positions the conduction matrix was made at
-    _zeta_prev = _area_prev = _normal_prev = None
+    zeta_prev = area_prev = normal_prev = None
+
+    def forget_geometry(self):
+        """Neighbours change (particles added or removed): zeta and the area are evaluated
+        afresh for every row at the next evaluation."""
+        self.zeta_ok = self.area_ok = None
 
     def _mark_rigid(self, state: ParticleState, table, work=None):
         """Per particle: solid, not next to melt, and so are all its neighbours, of its body.
@@ -331,21 +336,21 @@ class Conduction:
         body_w = state.body if w is None else state.body.index_select(0, w)
         same = (gather_nb(firm, nbw) & (gather_nb(state.body, nbw) == body_w.unsqueeze(1))) | ~mw
         rigid_w = firm_w & same.all(1)
-        self._rigid = rigid_w if w is None else firm.index_copy(0, w, rigid_w)
+        self.rigid = rigid_w if w is None else firm.index_copy(0, w, rigid_w)
         n = state.n
         for name in ("zeta", "area"):
-            ok = getattr(self, f"_{name}_ok")
-            val = getattr(self, f"_{name}", None)
+            ok = getattr(self, f"{name}_ok")
+            val = getattr(self, f"{name}_cache", None)
             keep = ok is not None and val is not None and ok.shape[0] == n
-            setattr(self, f"_{name}_ok", ok & self._rigid if keep else None)
-            setattr(self, f"_{name}_prev", val if keep else None)
-        self._normal_prev = getattr(self, "normal", None) if self._area_prev is not None else None
-        if self._normal_prev is None or self._normal_prev.shape[0] != n:
-            self._area_prev = self._area_ok = self._normal_prev = None
+            setattr(self, f"{name}_ok", ok & self.rigid if keep else None)
+            setattr(self, f"{name}_prev", val if keep else None)
+        self.normal_prev = getattr(self, "normal", None) if self.area_prev is not None else None
+        if self.normal_prev is None or self.normal_prev.shape[0] != n:
+            self.area_prev = self.area_ok = self.normal_prev = None
 
     def _rows_to_compute(self, name: str):
         """(positions in rows to compute, previous full-length values or None: compute all)."""
-        ok, prev = getattr(self, f"_{name}_ok"), getattr(self, f"_{name}_prev")
+        ok, prev = getattr(self, f"{name}_ok"), getattr(self, f"{name}_prev")
         if prev is None:
             return None, None
         return torch.nonzero(~ok.index_select(0, self.rows)).squeeze(1), prev
@@ -353,8 +358,8 @@ class Conduction:
     def _computed(self, name: str, n: int):
         """After computing: the values of every row hold; the rigid ones may be kept later."""
         in_rows = torch.zeros(n, dtype=torch.bool, device=self.rows.device).index_fill_(0, self.rows, True)
-        setattr(self, f"_{name}_ok", in_rows & self._rigid)
-        setattr(self, f"_{name}_prev", None)
+        setattr(self, f"{name}_ok", in_rows & self.rigid)
+        setattr(self, f"{name}_prev", None)
         return in_rows
 
     def heat_rate(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
@@ -364,11 +369,11 @@ class Conduction:
     def heat_rate_rows(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
         """div(k grad T) (W/m^3) on ``rows`` only."""
         T = self.wall_temperature(state, T)
-        if self._zeta is None:
-            self._zeta = self.zeta(state)
+        if self.zeta_cache is None:
+            self.zeta_cache = self.zeta(state)
         if not self.op.built:  # once per selection, when zeta is known
-            self.op.build(self.k, self._zeta)
-        return self.op.apply(state.x, T, self.k, state.m / state.rho, self._zeta)
+            self.op.build(self.k, self.zeta_cache)
+        return self.op.apply(state.x, T, self.k, state.m / state.rho, self.zeta_cache)
 
     def zeta(self, state: ParticleState) -> torch.Tensor:
         """Per-particle Laplacian normalisation, used where it lies in [0.95, 1.05] (else 1): it corrects the
@@ -401,10 +406,10 @@ class Conduction:
             self.lit = torch.zeros(n, dtype=torch.bool, device=lit.device).index_copy_(0, rows, lit)
             self.n_lit = lit.sum()  # a tensor: the plan statistics sum it without a sync per step
         if self.losses.active:
-            if self._area is None:
-                self._area = self.surface_area(state)
+            if self.area_cache is None:
+                self.area_cache = self.surface_area(state)
             fl = self.losses.flux(T.index_select(0, rows), lambda T_: enthalpy(T_, self.prm, 0.0))
-            area = self._area.index_select(0, rows)
+            area = self.area_cache.index_select(0, rows)
             for name, f in fl.items():
                 parts[name] = -f * area
         P = embed(rows, sum(parts.values()), n)
@@ -426,33 +431,10 @@ class Conduction:
         """:meth:`beam_power` on ``rows`` only."""
         comm = getattr(self, "comm", None)
         if comm is not None and comm.size > 1:
-            return self._beam_power_decomposed(state, t, rows, comm)
+            return beam_power_decomposed(self, state, t, rows, comm)
         x = state.x.index_select(0, rows)
         material = torch.ones(rows.numel(), dtype=torch.bool, device=x.device)
         return sum(beam_power(x, material, b, t, self.dx) for b in self.beams)
-
-    def _beam_power_decomposed(self, state: ParticleState, t: float, rows: torch.Tensor, comm):
-        """Shadowing is global: the candidates of all processes (their own particles inside
-        a beam's cylinder) are gathered in particle-id order (the order of one process), the
-        beams traced over them on every process, and each local row (owned or ghost) takes
-        its particle's power by id."""
-        own = self.owned.index_select(0, rows)
-        x, ids = state.x.index_select(0, rows), state.id.index_select(0, rows)
-        cyl = torch.zeros_like(own)
-        for b in self.beams:
-            cyl = cyl | in_beam(x, b, t)
-        sel = own & cyl
-        g = comm.gather_rows({"x": x[sel], "id": ids[sel]})
-        order = torch.argsort(g["id"])
-        gx, gid = g["x"].index_select(0, order), g["id"].index_select(0, order)
-        material = torch.ones(gid.numel(), dtype=torch.bool, device=x.device)
-        P_g = sum(beam_power(gx, material, b, t, self.dx) for b in self.beams)
-        P = torch.zeros(rows.numel(), dtype=x.dtype, device=x.device)
-        if gid.numel():
-            pos = torch.searchsorted(gid, ids).clamp_max(gid.numel() - 1)
-            hit = cyl & (gid.index_select(0, pos) == ids)
-            P = torch.where(hit, P_g.index_select(0, pos), P)
-        return P
 
     def lit_mask(self, state: ParticleState, t: float) -> torch.Tensor | None:
         """Particles any beam lights at time t (all non-wall particles considered)."""
@@ -468,7 +450,7 @@ class Conduction:
         if self.steady is not None:  # not in the conduction matrix: steady from its next making
             self.steady = torch.cat([self.steady, torch.zeros(new.n, dtype=torch.bool, device=self.steady.device)])
             self.x_op = torch.cat([self.x_op, new.x])
-        for name in ("_zeta", "_area", "normal"):  # kept to length until the forced rebuild
+        for name in ("zeta_cache", "area_cache", "normal"):  # kept to length until the forced rebuild
             v = getattr(self, name, None)
             if v is not None:
                 setattr(self, name, torch.cat([v, torch.zeros((new.n,) + v.shape[1:], dtype=v.dtype, device=v.device)]))
@@ -489,9 +471,9 @@ class Conduction:
         # outward unit normal n = -grad c / |grad c| on surface particles, 0 inside
         n_out = torch.where(surface.unsqueeze(-1), -g / gn.clamp_min(1e-300).unsqueeze(-1), torch.zeros_like(g))
         a = (state.m / state.rho).index_select(0, rows) * gn / self.delta_norm
-        normal_prev = self._normal_prev
+        normal_prev = self.normal_prev
         in_rows = self._computed("area", state.n)
-        self._normal_prev = None
+        self.normal_prev = None
         if prev is not None and normal_prev is not None:  # as computed whole: 0 off the rows
             self.normal = torch.where(in_rows.unsqueeze(-1), normal_prev, 0.0).index_copy(0, rows, n_out)
             return torch.where(in_rows, prev, 0.0).index_copy(0, rows, a)
@@ -526,8 +508,8 @@ class Conduction:
         so that a surface particle's loss changes little over a step (explicit
         integration of dT/dt = -lambda T is stable for lambda dt < 2; 0.5 keeps it accurate).
         A 0-d float64 tensor."""
-        if self._area is None:
-            self._area = self.surface_area(state)
+        if self.area_cache is None:
+            self.area_cache = self.surface_area(state)
         L = self.losses
         rows = self.rows  # the others have no surface area
         if not rows.numel():
@@ -537,18 +519,42 @@ class Conduction:
         CT = L.evaporation_heat * L.molar_mass / R_GAS
         dq = (mdot * (CT / T**2 - 0.5 / T) * (L.evaporation_heat + enthalpy(T, self.prm, 0.0))
               + mdot * self.prm.specific_heat)
-        lam = self._area.index_select(0, rows) * dq / (state.m.index_select(0, rows) * self.prm.specific_heat)
+        lam = self.area_cache.index_select(0, rows) * dq / (state.m.index_select(0, rows) * self.prm.specific_heat)
         lmax = lam.max().double()
         return torch.where(lmax > 0, 0.5 / lmax, torch.full_like(lmax, math.inf))
 
-    @staticmethod
-    def energy(state: ParticleState, prm: ThermalParams, T_ref: float, owned=None) -> float:
-        """Stored energy sum_i m_i h(T_i) (J) relative to T_ref, walls excluded (and, in a
-        decomposed run, particles this process does not own)."""
-        inside = state.phase != Phase.WALL
-        if owned is not None:
-            inside = inside & owned
-        return float((state.m * enthalpy(state.T, prm, T_ref) * inside).sum())
+
+def beam_power_decomposed(th, state: ParticleState, t: float, rows: torch.Tensor, comm):
+    """Shadowing is global: the candidates of all processes (their own particles inside
+    a beam's cylinder) are gathered in particle-id order (the order of one process), the
+    beams traced over them on every process, and each local row (owned or ghost) takes
+    its particle's power by id."""
+    own = th.owned.index_select(0, rows)
+    x, ids = state.x.index_select(0, rows), state.id.index_select(0, rows)
+    cyl = torch.zeros_like(own)
+    for b in th.beams:
+        cyl = cyl | in_beam(x, b, t)
+    sel = own & cyl
+    g = comm.gather_rows({"x": x[sel], "id": ids[sel]})
+    order = torch.argsort(g["id"])
+    gx, gid = g["x"].index_select(0, order), g["id"].index_select(0, order)
+    material = torch.ones(gid.numel(), dtype=torch.bool, device=x.device)
+    P_g = sum(beam_power(gx, material, b, t, th.dx) for b in th.beams)
+    P = torch.zeros(rows.numel(), dtype=x.dtype, device=x.device)
+    if gid.numel():
+        pos = torch.searchsorted(gid, ids).clamp_max(gid.numel() - 1)
+        hit = cyl & (gid.index_select(0, pos) == ids)
+        P = torch.where(hit, P_g.index_select(0, pos), P)
+    return P
+
+
+def stored_energy(state: ParticleState, prm: ThermalParams, T_ref: float, owned=None) -> float:
+    """Stored energy sum_i m_i h(T_i) (J) relative to T_ref, walls excluded (and, in a
+    decomposed run, particles this process does not own)."""
+    inside = state.phase != Phase.WALL
+    if owned is not None:
+        inside = inside & owned
+    return float((state.m * enthalpy(state.T, prm, T_ref) * inside).sum())
 
 
 __all__ = ["ThermalParams", "Conduction", "SurfaceLosses", "effective_heat_capacity", "enthalpy",

@@ -1,0 +1,88 @@
+"""Bookkeeping of a step that is not physics: which particles decide a neighbour rebuild,
+the rigid group a partial rebuild keeps, the active set's work mask, the rigid bodies'
+velocities and the energy balance. Functions of a :class:`~torchsph.simulation.Simulation`."""
+from __future__ import annotations
+
+import torch
+
+from .state import ParticleState, Phase
+from .thermal import stored_energy
+
+
+def moving_rows(sim) -> torch.Tensor | None:
+    """The particles whose displacement decides a neighbour rebuild: with an active set,
+    its work set, and of the cold solid left out one per rigid body (they move with it);
+    None (all) without one. Made once per work set."""
+    a = sim.active_set
+    if a is None or a.work is None or a.work.shape[0] != sim.state.n:
+        return None
+    if sim.moving_for is not a.work:
+        st = sim.state
+        cold = ~a.work & (st.phase == Phase.SOLID) & (st.body > 0)
+        idx = torch.arange(st.n, device=st.device)
+        big = torch.iinfo(torch.long).max
+        first = torch.full((sim.body_velocity.shape[0],), big, dtype=torch.long, device=st.device).scatter_reduce(
+            0, st.body, torch.where(cold, idx, torch.full_like(idx, big)), "amin")
+        keep = ~cold
+        keep.index_fill_(0, first[first < big], True)
+        sim.moving, sim.moving_for = torch.nonzero(keep).squeeze(1), a.work
+    return sim.moving
+
+
+def rigid_body(sim) -> torch.Tensor | None:
+    """Mask of the largest rigid group: the solid particles of one body, or the walls
+    (None without either)."""
+    st = sim.state
+    solid = (st.phase == Phase.SOLID) & (st.body > 0)
+    group = torch.where(solid, st.body, torch.where(st.phase == Phase.WALL, 0, -1))
+    rigid = group >= 0
+    if not bool(rigid.any()):
+        return None
+    main = int(torch.bincount(group[rigid]).argmax())
+    return group == main
+
+
+def work_set(sim) -> torch.Tensor:
+    """Refresh the active set (at a neighbour rebuild) and return its work mask."""
+    sim.active_set.refresh(sim.state, getattr(sim.thermal, "lit", None))
+    return sim.active_set.work
+
+
+def body_velocities(sim, state: ParticleState) -> torch.Tensor:
+    """(bodies, dim): each rigid body's mean velocity over its solid particles, over all
+    processes (the owned ones: ghosts are copies), so every process holds every body's row
+    even where it holds none of its particles (a rank whose slab the fed wire misses)."""
+    top = state.body.max().reshape(1) if state.n else torch.zeros(1, dtype=torch.long, device=state.device)
+    nbody = int(sim.comm.gather_rows({"top": top})["top"].max()) + 1
+    own = sim.comm.owned(sim)
+    solid = state.phase == Phase.SOLID
+    if own is not None:
+        solid = solid & own[: state.n]
+    solid = solid.to(state.dtype).unsqueeze(-1)
+    tot = torch.zeros(nbody, state.dim, dtype=state.dtype, device=state.device).index_add_(
+        0, state.body, state.v * solid)
+    cnt = torch.zeros(nbody, 1, dtype=state.dtype, device=state.device).index_add_(0, state.body, solid)
+    both = torch.tensor(sim.comm.sum(torch.cat([tot, cnt], 1).reshape(-1).tolist()),
+                        dtype=state.dtype, device=state.device).view(nbody, state.dim + 1)
+    return both[:, :-1] / both[:, -1:].clamp_min(1.0)
+
+
+def energy_balance(sim) -> dict:
+    """Energy bookkeeping (J) since the start: absorbed beam energy, heat from the walls
+    (conduction), radiated / convected / evaporated energy (negative), the change of the
+    stored energy sum m h(T), and the residual stored - (sum of the flows)."""
+    if sim.thermal is None:
+        return {}
+    own = sim.comm.owned(sim)
+    st = sim.state
+    stored = stored_energy(st, sim.thermal.prm, 0.0, own) - sim.E0
+    keys = sim.comm.union_keys(sim.energy)
+    vals = sim.comm.sum([stored] + [float(sim.energy.get(k, 0.0)) for k in keys])
+    stored, energy = vals[0], dict(zip(keys, vals[1:]))
+    out = {f"{k}_J": v for k, v in energy.items()}  # gains > 0, losses < 0
+    flows = sum(energy.values())
+    out["stored_J"] = stored
+    out["residual_J"] = stored - flows
+    ref = max(sum(abs(v) for v in energy.values()), 1e-300)
+    out["residual_rel"] = abs(out["residual_J"]) / ref
+    return out

@@ -1,0 +1,168 @@
+"""The per-particle array registry and the particle set's changes.
+
+One list of every per-particle array a step carries to the next (the state, the rates, the
+Verlet reference positions and each term's caches), by name: checkpoints, the MPI
+migration and ghost refresh, and particle insertion and removal all go through it, and
+:func:`rearm` puts a swapped particle set back into a simulation (the one sequence after a
+checkpoint restore, a migration and a decomposed restart)."""
+from __future__ import annotations
+
+from dataclasses import fields
+
+import torch
+
+from .state import ParticleState, Phase
+
+# per-particle caches built lazily (some processes of a decomposed run may not hold them):
+# where a checkpoint or a migration does not carry one, it is dropped and rebuilt whole
+LAZY_CACHES = frozenset({"th.steady", "th.x_op", "th.zeta_cache", "th.area_cache", "th.normal", "th.zeta_ok",
+                         "th.area_ok", "th.lit", "th.zeta_prev", "th.area_prev", "th.normal_prev",
+                         "sf.normal", "sf.kappa"})
+# names written by earlier versions (a global MPI checkpoint stores the registry's names)
+RENAMED = {"th._zeta": "th.zeta_cache", "th._area": "th.area_cache", "th._zeta_ok": "th.zeta_ok",
+           "th._area_ok": "th.area_ok", "th._zeta_prev": "th.zeta_prev", "th._area_prev": "th.area_prev",
+           "th._normal_prev": "th.normal_prev"}
+
+
+def _owners(sim) -> dict:
+    return {"th": sim.thermal, "sf": sim.surface_model, "as": sim.active_set, "nl": sim.nl}
+
+
+def particle_arrays(sim) -> dict[str, torch.Tensor]:
+    """Every per-particle array the step carries from one step to the next, by name (None
+    entries omitted)."""
+    d = {f"state.{f.name}": getattr(sim.state, f.name) for f in fields(sim.state)}
+    d["dvdt"], d["drhodt"], d["dTdt"] = sim.dvdt, sim.drhodt, sim.dTdt
+    d["nl.x_ref"] = sim.nl.x_ref
+    th = sim.thermal
+    if th is not None:
+        d.update({"th.k": th.k, "th.T_set": th.T_set, "th.steady": th.steady, "th.x_op": th.x_op,
+                  "th.zeta_cache": th.zeta_cache, "th.area_cache": th.area_cache,
+                  "th.normal": getattr(th, "normal", None), "th.zeta_ok": th.zeta_ok, "th.area_ok": th.area_ok,
+                  # the last rebuild's values, to be reused by the lazy recomputation: carried only
+                  # while it is pending (else unused, and kept out of the per-step ghost refresh)
+                  "th.zeta_prev": th.zeta_prev if th.zeta_cache is None else None,
+                  "th.area_prev": th.area_prev if th.area_cache is None else None,
+                  "th.normal_prev": th.normal_prev if th.area_cache is None else None,
+                  "th.lit": getattr(th, "lit", None)})
+    sf = sim.surface_model
+    if sf is not None:
+        d.update({"sf.normal": sf.normal, "sf.kappa": sf.kappa})
+    a = sim.active_set
+    if a is not None:
+        d.update({"as.active": a.active, "as.work": a.work, "as.frontier": a.frontier})
+    return {k: v for k, v in d.items() if v is not None}
+
+
+def set_particle_arrays(sim, d: dict[str, torch.Tensor]):
+    """Put arrays named as in :func:`particle_arrays` back (after a permutation)."""
+    st = {k[6:]: v for k, v in d.items() if k.startswith("state.")}
+    if st:
+        sim.state = ParticleState(**st)
+    owners = _owners(sim)
+    for k, v in d.items():
+        k = RENAMED.get(k, k)
+        if k.startswith("state."):
+            continue
+        if k in ("dvdt", "drhodt", "dTdt"):
+            setattr(sim, k, v)
+            continue
+        owner, name = k.split(".", 1)
+        setattr(owners[owner], name, v)
+    fluid_set(sim)
+
+
+def rearm(sim, arrays: dict[str, torch.Tensor], table=None):
+    """Put per-particle arrays (named as in :func:`particle_arrays`) into ``sim`` after its
+    particles were swapped (a checkpoint restored, a migration between ranks): the arrays
+    first; then every lazily built cache that ``arrays`` does not hold is dropped (it is
+    rebuilt whole when next needed, never left over from the particles before: a cache kept
+    from other rows is wrong); ``table()`` (if given) sets the neighbour table; the pair
+    subsets are selected anew, which resets the per-rebuild caches, and the given ones are
+    put back; the fluid's pair geometry (what the next continuity sum reuses) is
+    recomputed, the rates kept."""
+    arrays = {RENAMED.get(k, k): v for k, v in arrays.items()}
+    held = particle_arrays(sim)
+    set_particle_arrays(sim, arrays)
+    owners = _owners(sim)
+    for k in held:
+        if k in LAZY_CACHES and k not in arrays:
+            owner, name = k.split(".", 1)
+            setattr(owners[owner], name, None)
+    if table is not None:
+        table()
+    sim.select_pairs()
+    set_particle_arrays(sim, {k: v for k, v in arrays.items() if k.startswith(("th.", "sf."))})
+    if sim.fluid is not None:
+        saved = sim.dvdt
+        sim.fluid.momentum(sim.state, sim.state.v)  # sets p and the cached geometry only
+        sim.dvdt = saved
+
+
+def add_particles(sim, new: ParticleState):
+    """Append particles (e.g. a fed wire's new layer) at rest relative to their body, with
+    zero rates; the neighbour list is rebuilt at the next rebuild point (forced). Every
+    process of a decomposed run is given the same ``new`` and keeps the ones in its slab.
+    Returns (the particles added here, the row permutation the decomposition applied to
+    keep its own rows first, or None)."""
+    sim.stale = True
+    if sim.thermal is not None:  # on every process: the geometry is evaluated afresh
+        sim.thermal.forget_geometry()
+    new, own = sim.comm.claim(sim, new)
+    if new.n == 0:
+        return new, None
+    z = lambda t: torch.cat([t, torch.zeros((new.n,) + t.shape[1:], dtype=t.dtype, device=t.device)])  # noqa: E731
+    sim.state = ParticleState.cat([sim.state, new])
+    sim.dvdt, sim.drhodt = z(sim.dvdt), z(sim.drhodt)
+    if sim.dTdt is not None:
+        sim.dTdt = z(sim.dTdt)
+        sim.thermal.add_particles(new)
+        # the enthalpy the new particles bring in (the stored energy counts it)
+        fed = new.m * sim.thermal.to_enthalpy(new.T)
+        fed = (fed if own is None else torch.where(own, fed, torch.zeros_like(fed))).sum()
+        sim.energy["fed"] = sim.energy.get("fed", 0.0) + fed
+    if sim.active_set is not None:
+        sim.active_set.pad(new.n)
+    fluid_set(sim)
+    return new, sim.comm.place_new(sim, new.n)
+
+
+def remove_escaped(sim, t: float, H_half=None):
+    """At a rebuild point (the step would rebuild the neighbour list anyway: an escaping
+    particle is a fast one, and its rows and columns go with the rebuild), remove the
+    particles outside the scene (``sim.escape.outside``), booking their mass and stored
+    energy (``escaped``, a loss in the energy balance). Every process removes the same
+    particles (owned rows and their ghost copies, by id). Returns (whether a rebuild is due,
+    the kept-rows mask or None). ``H_half()``: the specific enthalpy at the half step, what
+    the particles hold in the energy balance at this point of the step (the flows to them
+    are booked up to it)."""
+    due = sim.stale or sim.nl.needs_rebuild(sim.state.x, sim.moving_rows())
+    if sim.comm.size > 1:
+        due = sim.comm.any(due)
+    if not due:
+        return False, None
+    s = sim.state
+    out = sim.escape.outside(s.x, t)
+    own = sim.comm.owned(sim)
+    mine = out if own is None else out & own
+    ids = sim.comm.union_ids(s.id[mine])
+    if ids.numel() == 0:
+        return True, None
+    keep = ~torch.isin(s.id, ids.to(s.id.device))
+    sim.escape.book(int(mine.sum()), float(s.m[mine].sum()))
+    if sim.thermal is not None:
+        lost = (s.m * H_half())[mine].sum()
+        sim.energy["escaped"] = sim.energy.get("escaped", 0.0) - lost
+        sim.thermal.forget_geometry()  # neighbours change: the geometry is evaluated afresh
+    n = s.n
+    set_particle_arrays(sim, {k: v[keep] for k, v in particle_arrays(sim).items() if v.shape[0] == n})
+    sim.comm.drop_rows(sim, keep)
+    sim.T_prev = sim.T_prev[keep]
+    sim.stale = True
+    return True, keep
+
+
+def fluid_set(sim):
+    """The fluid set after particles changed phase, were added or removed (not re-selected)."""
+    sim.fluid_mask = sim.state.phase == Phase.FLUID
+    sim.n_fluid = int(sim.fluid_mask.sum())

@@ -1,0 +1,90 @@
+"""Melting and freezing (SPEC 2.2, 3.13): solid above T_L joins the melt and leaves its body;
+melt below T_S joins the rigid body it rests on and takes its velocity; melt in the mushy
+zone is dragged towards the local solid velocity (Carman-Kozeny)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .fluid import neighbour_average
+from .particles import fluid_set
+from .state import Phase
+
+
+@dataclass
+class PhaseChange:
+    T_S: float  # solidus (K): melt below it freezes
+    T_L: float  # liquidus (K): solid above it melts
+    C: float  # mushy-zone drag (1/s)
+
+    def update(self, sim, dt: float):
+        """Solid particles above T_L join the fluid (and leave their body); fluid particles
+        below T_S join the rigid body they rest on (the one with the largest kernel weight
+        among their solid neighbours) and take its velocity; fluid in the mushy zone is
+        dragged towards the local solid velocity with the Carman-Kozeny rate
+        C (1 - phi)^2 / (phi^3 + 1e-3), integrated exactly (u - u_s decays as exp(-rate dt)),
+        so any C is stable. Carman-Kozeny rather than a viscosity ramp: the harmonic mean of
+        (3.8) lets the low melt viscosity dominate a pair, so a viscosity ramp barely damps."""
+        T_S, T_L, C = self.T_S, self.T_L, self.C
+        s = sim.state
+        melt = (s.phase == Phase.SOLID) & (s.T > T_L)
+        freeze = (s.phase == Phase.FLUID) & (s.T < T_S)
+        n_melt, n_freeze = torch.stack([melt.sum(), freeze.sum()]).tolist()
+        g_melt, g_freeze = sim.comm.sum([n_melt, n_freeze])  # every process re-selects together
+        if n_freeze:  # join the body it rests on and take that body's velocity
+            rows = torch.nonzero(freeze).squeeze(1)
+            b = resting_body(sim, rows)
+            v_b = sim.body_velocity.index_select(0, b)
+            s.v = s.v.index_copy(0, rows, torch.where((b > 0).unsqueeze(-1), v_b, s.v.index_select(0, rows)))
+            s.body = s.body.index_copy(0, rows, b)
+            s.phase = torch.where(freeze, torch.full_like(s.phase, int(Phase.SOLID)), s.phase)
+        if n_melt:  # melt leaves its body
+            s.phase = torch.where(melt, torch.full_like(s.phase, int(Phase.FLUID)), s.phase)
+            s.body = torch.where(melt, torch.zeros_like(s.body), s.body)
+        if g_melt or g_freeze:  # the pair subsets, rates and accelerations of the new fluid set
+            fluid_set(sim)
+            sim.select_pairs()
+            sim.dvdt = torch.zeros_like(s.v)
+            sim.drhodt = torch.zeros_like(s.rho)
+            if sim.fluid is not None:
+                sim.dvdt = sim.accelerations(s.v)
+        if sim.fluid is None or C <= 0:
+            return
+        rows = sim.fluid_model.rows_f
+        T = s.T.index_select(0, rows)
+        phi = ((T - T_S) / (T_L - T_S)).clamp(0.0, 1.0)
+        rate = C * (1.0 - phi) ** 2 / (phi**3 + 1e-3)
+        v_s, near = solid_velocity(sim, rows)
+        v = s.v.index_select(0, rows)
+        decay = torch.where(near, torch.exp(-rate * dt), torch.ones_like(rate)).unsqueeze(-1)
+        s.v = s.v.index_copy(0, rows, v_s + (v - v_s) * decay)
+
+
+def resting_body(sim, rows: torch.Tensor) -> torch.Tensor:
+    """For each of ``rows``: the rigid body with the largest kernel weight among its
+    solid neighbours (0 where no solid is near)."""
+    s = sim.state
+    nb = sim.nl.table.gather(rows)[0]
+    m = sim.fluid_model
+    solid = (s.phase == Phase.SOLID).to(s.dtype)
+    best = torch.zeros(rows.numel(), dtype=torch.long, device=s.device)
+    best_w = torch.zeros(rows.numel(), dtype=s.dtype, device=s.device)
+    for b in range(1, sim.body_velocity.shape[0]):  # a loop over bodies (a handful)
+        w = solid * (s.body == b).to(s.dtype)
+        _, sW = neighbour_average(s.x, s.v, rows, nb, w, m.kernel, m.h, sim.domain)
+        take = sW > best_w
+        best = torch.where(take, torch.full_like(best, b), best)
+        best_w = torch.where(take, sW, best_w)
+    return best
+
+
+def solid_velocity(sim, rows: torch.Tensor):
+    """Shepard average of the rigid-solid neighbours' velocity around ``rows`` (the
+    velocity of the body a particle rests on) and whether any solid is near."""
+    s = sim.state
+    nb = sim.nl.table.gather(rows)[0]
+    solid = (s.phase == Phase.SOLID).to(s.dtype)
+    m = sim.fluid_model
+    avg, sW = neighbour_average(s.x, s.v, rows, nb, solid, m.kernel, m.h, sim.domain)
+    return avg, sW > 0

@@ -1,0 +1,42 @@
+"""The case schema's building blocks: a key's type, default and bounds, and the error a
+malformed case raises. The lowest layer of the case handling: the scenes declare their keys
+with it, :mod:`torchsph.config` validates against them."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+
+class CaseError(ValueError):
+    """A malformed case file or override (message: one line)."""
+
+
+REQUIRED = object()  # the default of a key that has none
+
+
+@dataclass(frozen=True)
+class Key:
+    kind: str  # float | int | bool | str | vec
+    default: Any = REQUIRED
+    gt: float | None = None  # value must be > gt
+    ge: float | None = None  # value must be >= ge
+    le: float | None = None  # value must be <= le
+    lt: float | None = None
+    choices: tuple | None = None
+    doc: str = ""
+
+    def allowed(self) -> str:
+        if self.choices is not None:
+            return "one of " + ", ".join(repr(c) for c in self.choices)
+        parts = {"float": "a number", "int": "an integer", "bool": "true or false",
+                 "str": "a string", "vec": "a list of numbers"}[self.kind]
+        bounds = []
+        if self.gt is not None:
+            bounds.append(f"> {self.gt:g}")
+        if self.ge is not None:
+            bounds.append(f">= {self.ge:g}")
+        if self.lt is not None:
+            bounds.append(f"< {self.lt:g}")
+        if self.le is not None:
+            bounds.append(f"<= {self.le:g}")
+        return parts + (" " + " and ".join(bounds) if bounds else "")
