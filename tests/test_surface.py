@@ -247,3 +247,43 @@ def test_zero_net_force_keeps_a_thermocapillary_drop_in_place():
     assert out["false"][0] > 1e-3  # the discrete forces' resultant: mm/s after 3 ms
     assert out["true"][0] < 1e-12
     assert abs(out["true"][1] / out["false"][1] - 1) < 0.1
+
+
+def test_one_colour_gradient_per_step_for_the_surface_forces_and_the_losses(monkeypatch):
+    """A cube of melt with surface tension and the evaporation loss reads the colour gradient
+    in two terms (the forces on its surface, the losses' area on every surface particle): the
+    free-surface stage evaluates it once per step, counted on the pair sum itself, on plain
+    steps and on steps with a neighbour rebuild (where the losses' area of the rows that moved
+    is made afresh: the one evaluation then covers those rows too; before, a second one). That the values
+    are those of separate evaluations: the runs before and after this stage agree bit for bit."""
+    from pathlib import Path
+
+    from torchsph.free_surface import colour_gradient_pairs
+
+    root = Path(__file__).resolve().parents[1]
+    _, cfg = load_case(root / "cases" / "cube_evaporation_preview", ["scene.size_m=[2.5e-3, 2.5e-3, 2.5e-3]",
+                                                                                "scene.temperature_K=1800.0"])
+    _, sim = make_simulation(cfg)
+    stage = sim.surface_model.colour
+    assert sim.thermal.colour is stage and sim.thermal.losses.active
+    calls = []
+
+    def counted(*a):
+        calls.append(a[3].numel())
+        return colour_gradient_pairs(*a)
+
+    stage.fn = counted  # the stage's pair sum, and the one the losses would call on their own
+    monkeypatch.setattr("torchsph.thermal.colour_gradient_pairs", counted)
+    per_step, rebuilt, rows = [], [], []
+    for k in range(10):
+        if k in (3, 7):
+            sim.stale = True  # a rebuild in this step: the losses' area is evaluated afresh
+        builds, n0 = sim.nl.n_builds, len(calls)
+        sim.advance()
+        rebuilt.append(sim.nl.n_builds > builds)
+        per_step.append(len(calls) - n0)
+        rows.append(calls[-1])
+        assert sim.thermal.area_cache is not None or k == 0  # (step 0 re-selects after the area)
+    # (step 0 melts the block, which re-selects the pairs: the melt's first evaluation)
+    assert sim.n_fluid == sim.state.n and per_step[1:] == [1] * 9 and rebuilt[3] and rebuilt[7]
+    assert rows[3] == rows[7] == sim.state.n  # the union: the losses' rows with the melt's

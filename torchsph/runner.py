@@ -11,6 +11,7 @@ import torch
 
 from . import io as sio
 from .fluid import FluidParams, WeaklyCompressibleFluid
+from .free_surface import ColourGradient
 from .kernels import make_kernel
 from .scenes import SCENES, Scene, build_scene
 from .beam import Beam
@@ -52,6 +53,9 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
                           gamma=fl["gamma"], density_diffusion=nm["density_diffusion"],
                           background_pressure=fl["background_pressure_Pa"], shifting=nm["shifting"])
         fluid = WeaklyCompressibleFluid(prm, kernel, h, scene.domain, compile=compile)
+    # the free-surface stage: one colour gradient per step for the surface forces and losses
+    colour = ColourGradient(kernel, h, scene.domain, cfg["surface"]["threshold"] if "surface" in cfg else 0.05,
+                            compile=compile)
     if "thermal" in cfg:
         th = cfg["thermal"]
         tp = ThermalParams(conductivity=th["conductivity_W_mK"], specific_heat=th["specific_heat_J_kgK"],
@@ -67,7 +71,7 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
                                evaporation_heat=th["evaporation_heat_J_kg"],
                                molar_mass=th["molar_mass_kg_mol"], ambient_pressure=th["ambient_pressure_Pa"])
         thermal = Conduction(tp, kernel, h, scene.domain, k, compile=compile, beams=beams, dx=scene.dx,
-                             losses=losses, h_over_dx=nm["h_over_dx"])
+                             losses=losses, h_over_dx=nm["h_over_dx"], colour=colour)
     surface = None
     if "surface" in cfg and fluid is not None:
         su = cfg["surface"]
@@ -77,7 +81,7 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
                            zero_net_force=su["zero_net_force"])
         surface = SurfaceForces(sp, kernel, h, scene.domain, nm["h_over_dx"],
                                 vapour_pressure=losses.vapour_pressure if thermal is not None else None,
-                                compile=compile)
+                                compile=compile, colour=colour)
     # nothing moves in a scene without fluid (rigid solids at rest): no Verlet skin needed
     skin = nm["skin_over_dx"] * scene.dx if fluid is not None else 0.0
     active = None

@@ -31,7 +31,8 @@ from .fluid import dot, embed, gather_nb, pair_geometry
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import ParticleState, Phase
-from .thermal import colour_gradient_pairs, flat_surface_layers
+from .free_surface import ColourGradient
+from .thermal import flat_surface_layers
 
 
 @dataclass
@@ -96,7 +97,8 @@ class SurfaceForces:
     """CSF surface tension, Marangoni and recoil forces on the free-surface fluid particles."""
 
     def __init__(self, params: SurfaceParams, kernel: Kernel, h: float, domain: Domain,
-                 h_over_dx: float, vapour_pressure=None, compile: bool = False):
+                 h_over_dx: float, vapour_pressure=None, compile: bool = False,
+                 colour: ColourGradient | None = None):
         if params.recoil and vapour_pressure is None:
             raise ValueError("SurfaceForces: recoil needs a vapour-pressure law")
         self.prm = params
@@ -112,8 +114,9 @@ class SurfaceForces:
         self.normal = None  # outward normal (N, d) of the last evaluation, 0 off the surface
         self.kappa = None  # curvature (N,) of the last evaluation, 0 off the surface
         self.n_surface = 0
-        self._fns = {"colour": colour_gradient_pairs, "moments": gradient_moments,
-                     "smooth": smoothed_pairs}
+        # the colour gradient, shared with the surface losses when both exist (one per step)
+        self.colour = colour if colour is not None else ColourGradient(kernel, h, domain, params.threshold, compile)
+        self._fns = {"moments": gradient_moments, "smooth": smoothed_pairs}
         if compile:  # the pair sums fuse; the batched d x d solves stay eager
             self._fns = {k: torch.compile(f, dynamic=True) for k, f in self._fns.items()}
 
@@ -127,6 +130,7 @@ class SurfaceForces:
         self.rows_f = torch.nonzero(fluid).squeeze(1)
         self.nb_f, self.mask_f = table.gather(self.rows_f, within=True)
         self.fluid = fluid
+        self.colour.want("surface", self.rows_f, table)
 
     def tension(self, T: torch.Tensor) -> torch.Tensor:
         prm = self.prm
@@ -139,9 +143,9 @@ class SurfaceForces:
         prm, n, d = self.prm, state.n, state.dim
         x, m, rho = state.x, state.m, state.rho
         zero = torch.zeros_like(x)
-        g = self._fns["colour"](x, m, rho, self.rows_f, self.nb_f, self.kernel, self.h, self.domain)
+        g = self.colour.of(state, "surface")
         gn = g.norm(dim=-1)
-        on = gn * self.h > prm.threshold
+        on = gn * self.h > self.colour.threshold
         sel = torch.nonzero(on).squeeze(1)
         rows = self.rows_f.index_select(0, sel)
         self.n_surface = rows.numel()

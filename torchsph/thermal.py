@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from .fluid import embed, gather_nb, pair_geometry
+from .free_surface import ColourGradient, colour_gradient_pairs  # noqa: F401 (re-exported)
 from .beam import beam_power, in_beam
 from .heat_operator import ConductionOperator
 from .kernels import Kernel
@@ -168,20 +169,6 @@ class SurfaceLosses:
         return self.emissivity > 0 or self.convection > 0 or self.evaporation
 
 
-def colour_gradient_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
-    """grad c_i = (1/V_i) sum_j (V_i^2 + V_j^2) rho_i / (rho_i + rho_j) dW/dr e_ij (3.9) over
-    all material neighbours (c = 1 in all material): nonzero only where the kernel is
-    truncated, i.e. at a free surface. Points into the material."""
-    dx, r = pair_geometry(x, rows, nb, domain, h)
-    dWr = kernel.dwdr(r, h) / r
-    rho_i = rho.index_select(0, rows).unsqueeze(1)
-    rho_j = gather_nb(rho, nb)
-    Vi = m.index_select(0, rows).unsqueeze(1) / rho_i
-    Vj = gather_nb(m, nb) / rho_j
-    w = (Vi * Vi + Vj * Vj) * rho_i / (rho_i + rho_j) * dWr / Vi
-    return (w.unsqueeze(-1) * dx).sum(1)
-
-
 def flat_surface_layers(kernel: Kernel, h_over_dx: float) -> list[tuple[float, float]]:
     """(depth, V |grad c| per unit area) for each lattice layer below a flat free surface
     (dx = 1; the surface lies dx/2 above the top layer), computed once."""
@@ -231,7 +218,7 @@ class Conduction:
 
     def __init__(self, params: ThermalParams, kernel: Kernel, h: float, domain: Domain,
                  conductivity: torch.Tensor, compile: bool = False, beams=(), dx: float = 0.0,
-                 losses: SurfaceLosses | None = None, h_over_dx: float = 1.5):
+                 losses: SurfaceLosses | None = None, h_over_dx: float = 1.5, colour: ColourGradient | None = None):
         self.prm = params
         self.kernel = kernel
         self.h = h
@@ -242,6 +229,9 @@ class Conduction:
         self.losses = losses if losses is not None else SurfaceLosses()
         self.delta_norm = flat_surface_delta(kernel, h_over_dx) if self.losses.active else 1.0
         self._zeta_fn = torch.compile(laplacian_norm, dynamic=True) if compile else laplacian_norm
+        # the colour gradient, shared with the surface forces when both exist (one per step)
+        self.colour = colour if colour is not None else ColourGradient(kernel, h, domain, compile=compile)
+        self.area_want = None  # the area rows asked of the colour stage at the last selection
 
     def select_pairs(self, state: ParticleState, table,
                      active: torch.Tensor | None = None, work: torch.Tensor | None = None,
@@ -292,6 +282,10 @@ class Conduction:
             nbw, mw = table.gather(self.rows_w, within=True)
             self.nb_w = nbw
             self.mask_w = (mw & ~gather_nb(wall, nbw)).to(state.dtype)
+        if self.losses.active:  # the rows whose area the next evaluation computes
+            sub, _ = self._rows_to_compute("area")
+            self.colour.want("area", self.rows if sub is None else self.rows.index_select(0, sub), table)
+            self.area_want = (self.area_prev, self.area_ok)
 
     def wall_temperature(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
         """T with wall rows replaced by the mirrored Dirichlet value 2 T_set - <T>."""
@@ -408,6 +402,9 @@ class Conduction:
         if self.losses.active:
             if self.area_cache is None:
                 self.area_cache = self.surface_area(state)
+            elif self.area_want is not None:  # the area came back with the particles (a restore)
+                self.area_want = None
+                self.colour.want("area", None)
             fl = self.losses.flux(T.index_select(0, rows), lambda T_: enthalpy(T_, self.prm, 0.0))
             area = self.area_cache.index_select(0, rows)
             for name, f in fl.items():
@@ -464,9 +461,14 @@ class Conduction:
         Also sets ``self.normal``, the outward unit normal of surface particles (0 inside)."""
         sub, prev = self._rows_to_compute("area")
         rows, nb = (self.rows, self.nb) if sub is None else (self.rows.index_select(0, sub), self.nb.index_select(0, sub))
-        g = colour_gradient_pairs(state.x, state.m, state.rho, rows, nb, self.kernel, self.h, self.domain)
+        want, self.area_want = self.area_want, None
+        if want is not None and want[0] is self.area_prev and want[1] is self.area_ok:  # the rows asked for
+            g = self.colour.of(state, "area")
+        else:
+            g = colour_gradient_pairs(state.x, state.m, state.rho, rows, nb, self.kernel, self.h, self.domain)
+        self.colour.want("area", None)  # (until the next selection)
         gn = g.norm(dim=-1)
-        surface = gn * self.h > 0.05
+        surface = gn * self.h > self.colour.threshold
         gn = torch.where(surface, gn, torch.zeros_like(gn))
         # outward unit normal n = -grad c / |grad c| on surface particles, 0 inside
         n_out = torch.where(surface.unsqueeze(-1), -g / gn.clamp_min(1e-300).unsqueeze(-1), torch.zeros_like(g))

@@ -1,0 +1,73 @@
+"""The free-surface stage: the colour gradient (3.9) once per evaluation point, for every
+term that reads it (the surface forces on the melt's surface, the surface losses' area on
+all material), with one threshold |grad c| h > ``threshold`` for "on the surface"."""
+from __future__ import annotations
+
+import torch
+
+from .fluid import gather_nb, pair_geometry
+from .kernels import Kernel
+from .neighbors import Domain
+
+
+def colour_gradient_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
+    """grad c_i = (1/V_i) sum_j (V_i^2 + V_j^2) rho_i / (rho_i + rho_j) dW/dr e_ij (3.9) over
+    all material neighbours (c = 1 in all material): nonzero only where the kernel is
+    truncated, i.e. at a free surface. Points into the material."""
+    dx, r = pair_geometry(x, rows, nb, domain, h)
+    dWr = kernel.dwdr(r, h) / r
+    rho_i = rho.index_select(0, rows).unsqueeze(1)
+    rho_j = gather_nb(rho, nb)
+    Vi = m.index_select(0, rows).unsqueeze(1) / rho_i
+    Vj = gather_nb(m, nb) / rho_j
+    w = (Vi * Vi + Vj * Vj) * rho_i / (rho_i + rho_j) * dWr / Vi
+    return (w.unsqueeze(-1) * dx).sum(1)
+
+
+class ColourGradient:
+    """The colour gradient of the particles the terms ask for, evaluated once per state.
+
+    At a pair selection each term says which rows it will read (:meth:`want`); the first
+    :meth:`of` at a state computes the gradient over the union of those rows in one pair sum
+    and every term takes its rows from it. A new state (positions or densities replaced by
+    the step) or a new selection starts afresh. ``n_evaluations`` counts the pair sums."""
+
+    def __init__(self, kernel: Kernel, h: float, domain: Domain, threshold: float = 0.05, compile: bool = False):
+        self.kernel, self.h, self.domain, self.threshold = kernel, h, domain, threshold
+        self.fn = torch.compile(colour_gradient_pairs, dynamic=True) if compile else colour_gradient_pairs
+        self.wanted: dict[str, torch.Tensor] = {}
+        self.table = None
+        self.memo = None  # (x, rho, {name: gradient of its rows})
+        self.n_evaluations = 0
+
+    def want(self, name: str, rows: torch.Tensor | None, table=None):
+        """Term ``name`` reads the rows ``rows`` of the neighbour table ``table`` (None: nothing)."""
+        if rows is None:
+            self.wanted.pop(name, None)
+        else:
+            self.wanted[name] = rows
+            self.table = table
+        self.memo = None
+
+    def of(self, state, name: str) -> torch.Tensor:
+        """(rows, d): the colour gradient of term ``name``'s rows at ``state``."""
+        memo = self.memo
+        if memo is None or memo[0] is not state.x or memo[1] is not state.rho or name not in memo[2]:
+            self.memo = memo = (state.x, state.rho, self._evaluate(state))
+        return memo[2][name]
+
+    def _evaluate(self, state) -> dict[str, torch.Tensor]:
+        self.n_evaluations += 1
+        sets = list(self.wanted.items())
+        if len(sets) == 1:
+            name, rows = sets[0]
+            nb = self.table.gather(rows, within=True)[0]
+            return {name: self.fn(state.x, state.m, state.rho, rows, nb, self.kernel, self.h, self.domain)}
+        mark = torch.zeros(state.n, dtype=torch.bool, device=state.x.device)
+        for _, rows in sets:
+            mark.index_fill_(0, rows, True)
+        union = torch.nonzero(mark).squeeze(1)  # (at a selection's first evaluation only)
+        slot = torch.cumsum(mark, 0) - 1
+        nb = self.table.gather(union, within=True)[0]
+        g = self.fn(state.x, state.m, state.rho, union, nb, self.kernel, self.h, self.domain)
+        return {name: g.index_select(0, slot.index_select(0, rows)) for name, rows in sets}
