@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import torch
 
+from .thermal import evaporation_limit
+
 
 class SimulationError(RuntimeError):
     """A run that cannot go on (blow-up, unstable time step); the message is a diagnosis."""
@@ -81,7 +83,7 @@ def limits(sim) -> dict[str, float]:
     if sim.thermal is not None:
         lim["thermal"] = sim.thermal.limit(sim.state)
         if sim.thermal.losses.evaporation:
-            lim["evaporation"] = sim.thermal.evaporation_limit(sim.state)
+            lim["evaporation"] = evaporation_limit(sim.thermal, sim.state)
             lim["heating"] = heating_limit(sim)
     dev = [k for k, v in lim.items() if isinstance(v, torch.Tensor)]
     if dev:  # the limits computed on the device: one read

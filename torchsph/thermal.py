@@ -504,26 +504,27 @@ class Conduction:
             r = torch.minimum(state.rho.index_select(0, self.rows).min(), r)
         return r if not self.rows_w.numel() else torch.minimum(r, state.rho.index_select(0, self.rows_w).min())
 
-    def evaporation_limit(self, state: ParticleState):
-        """Time-step limit of the evaporation loss, which is stiff near and above T_v:
-        0.5 m c_p / (A dq/dT), q = m_v [h_v + h(T)], dm_v/dT = m_v (C_T / T^2 - 1 / (2 T)),
-        so that a surface particle's loss changes little over a step (explicit
-        integration of dT/dt = -lambda T is stable for lambda dt < 2; 0.5 keeps it accurate).
-        A 0-d float64 tensor."""
-        if self.area_cache is None:
-            self.area_cache = self.surface_area(state)
-        L = self.losses
-        rows = self.rows  # the others have no surface area
-        if not rows.numel():
-            return math.inf
-        T = state.T.index_select(0, rows)
-        mdot = L.evaporation_flux(T)
-        CT = L.evaporation_heat * L.molar_mass / R_GAS
-        dq = (mdot * (CT / T**2 - 0.5 / T) * (L.evaporation_heat + enthalpy(T, self.prm, 0.0))
-              + mdot * self.prm.specific_heat)
-        lam = self.area_cache.index_select(0, rows) * dq / (state.m.index_select(0, rows) * self.prm.specific_heat)
-        lmax = lam.max().double()
-        return torch.where(lmax > 0, 0.5 / lmax, torch.full_like(lmax, math.inf))
+
+def evaporation_limit(th, state: ParticleState):
+    """Time-step limit of the evaporation loss, which is stiff near and above T_v:
+    0.5 m c_p / (A dq/dT), q = m_v [h_v + h(T)], dm_v/dT = m_v (C_T / T^2 - 1 / (2 T)),
+    so that a surface particle's loss changes little over a step (explicit
+    integration of dT/dt = -lambda T is stable for lambda dt < 2; 0.5 keeps it accurate).
+    A 0-d float64 tensor."""
+    if th.area_cache is None:
+        th.area_cache = th.surface_area(state)
+    L = th.losses
+    rows = th.rows  # the others have no surface area
+    if not rows.numel():
+        return math.inf
+    T = state.T.index_select(0, rows)
+    mdot = L.evaporation_flux(T)
+    CT = L.evaporation_heat * L.molar_mass / R_GAS
+    dq = (mdot * (CT / T**2 - 0.5 / T) * (L.evaporation_heat + enthalpy(T, th.prm, 0.0))
+          + mdot * th.prm.specific_heat)
+    lam = th.area_cache.index_select(0, rows) * dq / (state.m.index_select(0, rows) * th.prm.specific_heat)
+    lmax = lam.max().double()
+    return torch.where(lmax > 0, 0.5 / lmax, torch.full_like(lmax, math.inf))
 
 
 def beam_power_decomposed(th, state: ParticleState, t: float, rows: torch.Tensor, comm):
