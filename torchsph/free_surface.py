@@ -30,7 +30,7 @@ class ColourGradient:
     At a pair selection each term says which rows it will read (:meth:`want`); the first
     :meth:`of` at a state computes the gradient over the union of those rows in one pair sum
     and every term takes its rows from it. A new state (positions or densities replaced by
-    the step) or a new selection starts afresh. ``n_evaluations`` counts the pair sums."""
+    the step) or a new selection starts afresh."""
 
     def __init__(self, kernel: Kernel, h: float, domain: Domain, threshold: float = 0.05, compile: bool = False):
         self.kernel, self.h, self.domain, self.threshold = kernel, h, domain, threshold
@@ -38,7 +38,6 @@ class ColourGradient:
         self.wanted: dict[str, torch.Tensor] = {}
         self.table = None
         self.memo = None  # (x, rho, {name: gradient of its rows})
-        self.n_evaluations = 0
 
     def want(self, name: str, rows: torch.Tensor | None, table=None):
         """Term ``name`` reads the rows ``rows`` of the neighbour table ``table`` (None: nothing)."""
@@ -57,7 +56,6 @@ class ColourGradient:
         return memo[2][name]
 
     def _evaluate(self, state) -> dict[str, torch.Tensor]:
-        self.n_evaluations += 1
         sets = list(self.wanted.items())
         if len(sets) == 1:
             name, rows = sets[0]

@@ -43,6 +43,10 @@ class PhaseChange:
             s.phase = torch.where(melt, torch.full_like(s.phase, int(Phase.FLUID)), s.phase)
             s.body = torch.where(melt, torch.zeros_like(s.body), s.body)
         if g_melt or g_freeze:  # the pair subsets, rates and accelerations of the new fluid set
+            # decomposed: a ghost's phase is its owner's decision (its own rows lack neighbours
+            # beyond the halo): ghosts take their owners' values before the selection
+            sim.comm.end_step(sim)
+            s = sim.state
             fluid_set(sim)
             sim.select_pairs()
             sim.dvdt = torch.zeros_like(s.v)
