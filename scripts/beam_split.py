@@ -23,6 +23,7 @@ from torchsph.beam import beam_power  # noqa: E402
 from torchsph.config import load_case  # noqa: E402
 from torchsph.deposition import WIRE  # noqa: E402
 from torchsph.runner import make_simulation  # noqa: E402
+from torchsph.scenes import case_beams  # noqa: E402
 
 
 def melt_power(cfg: dict) -> float:
@@ -53,7 +54,7 @@ def main():
     a = ap.parse_args()
     over = list(a.set)
     _, cfg = load_case(a.case, over, a.preview)
-    total = sum(b["power_W"] * b["efficiency"] for b in cfg.get("beam", []))
+    total = sum(b["power_W"] * b["efficiency"] for b in case_beams(cfg))
     print(f"{a.case}: absorbed power {total:.0f} W; melting the wire at "
           f"{cfg['scene']['wire_feed_m_s'] * 1e3:.0f} mm/s needs {melt_power(cfg):.0f} W")
     print("| tip height (mm) | aim height (mm) | on the wire (W) | on the substrate (W) |")

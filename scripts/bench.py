@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from torchsph.config import load_case  # noqa: E402
 from torchsph.runner import make_simulation, run_steps  # noqa: E402
-from torchsph.scenes import taylor_green_exact  # noqa: E402
+from torchsph.analytic import taylor_green_exact  # noqa: E402
 
 CASE = Path(__file__).resolve().parents[1] / "cases" / "taylor_green_2d"
 
@@ -63,7 +63,7 @@ def run_tg(nx, dtype, device, t_end, compile, overrides=()):
 
 def run_conduction(nx, dtype, device, compile):
     """1-D transient conduction (cases/conduction_1d): L2 error / (T_face - T0) vs erfc."""
-    from torchsph.scenes import conduction_1d_exact
+    from torchsph.analytic import conduction_1d_exact
     from torchsph.state import Phase
 
     _, cfg = load_case(CASE.parent / "conduction_1d", [f"scene.nx={nx}"])

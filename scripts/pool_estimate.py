@@ -25,6 +25,7 @@ sys.path.insert(0, str(ROOT))
 
 from torchsph.config import load_case  # noqa: E402
 from torchsph.rosenthal import rosenthal_gaussian  # noqa: E402
+from torchsph.scenes import case_beams  # noqa: E402
 
 
 def estimate(cfg, wire_share: float = 1.0, dx: float = 2.5e-5, depth: float = 1.0e-4) -> dict:
@@ -36,7 +37,7 @@ def estimate(cfg, wire_share: float = 1.0, dx: float = 2.5e-5, depth: float = 1.
     for key, want in (("conductivity_W_mK", 42.0), ("specific_heat_J_kgK", 450.0), ("liquidus_K", 1753.15)):
         if abs(th[key] - want) > 1e-9 * want:
             raise SystemExit(f"pool_estimate: torchsph/rosenthal.py is set up for steel (thermal.{key} = {want})")
-    beams = cfg.get("beam", [])
+    beams = case_beams(cfg)
     absorbed = sum(b["power_W"] * b["efficiency"] for b in beams)
     d, Vw = sc["wire_diameter_m"], sc["wire_feed_m_s"]
     wire = rho * math.pi * d * d / 4 * Vw * (cp * (TL - T0) + th["latent_heat_J_kg"])

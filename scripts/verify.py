@@ -20,7 +20,7 @@ sys.path.insert(0, str(ROOT))
 from torchsph.config import load_case  # noqa: E402
 from torchsph.kernels import KERNELS, make_kernel  # noqa: E402
 from torchsph.runner import make_simulation, run_steps  # noqa: E402
-from torchsph.scenes import poiseuille_exact, taylor_green_exact  # noqa: E402
+from torchsph.analytic import poiseuille_exact, taylor_green_exact  # noqa: E402
 
 
 def case(name, *ov):
@@ -68,7 +68,7 @@ def tank():
 
 
 def conduction():
-    from torchsph.scenes import conduction_1d_exact
+    from torchsph.analytic import conduction_1d_exact
     from torchsph.state import Phase
 
     errs = []
@@ -86,7 +86,7 @@ def conduction():
 
 
 def bump():
-    from torchsph.scenes import gaussian_bump_exact
+    from torchsph.analytic import gaussian_bump_exact
 
     scene, sim = case("gaussian_bump_3d")
     run_steps(sim, t_end=0.004)
@@ -100,7 +100,7 @@ def bump():
 
 def stefan():
     from torchsph.state import Phase
-    from torchsph.thermal import melt_front, neumann_lambda
+    from torchsph.analytic import melt_front, neumann_lambda
 
     scene, sim = case("stefan_1d")
     run_steps(sim, t_end=0.5)

@@ -9,6 +9,7 @@ from torchsph import checkpoint as ckpt
 from torchsph.config import CaseError, load_case
 from torchsph.deposition import WIRE, measure
 from torchsph.runner import make_simulation, run_steps
+from torchsph.scenes import case_beams
 from torchsph.state import Phase
 
 from escape_driver import fling
@@ -219,8 +220,8 @@ def test_refrozen_wire_material_welds_to_the_substrate_and_unmelted_wire_still_s
 def test_sources_are_aimed_at_the_tip_in_the_declared_layout():
     for layout, axis in (("along", 0), ("perpendicular", 1)):
         cfg = small(f"scene.source_layout=\"{layout}\"", "scene.source_azimuth_deg=30.0")
-        beams = cfg["beam"]
-        assert len(beams) == 2
+        beams = case_beams(cfg)
+        assert len(beams) == 2 and "beam" not in cfg  # made by the scene, not written into the case
         for b in beams:
             e = b["direction"]
             assert abs(math.degrees(math.acos(-e[2])) - 30.0) < 1e-9  # tilt from the vertical

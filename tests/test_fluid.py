@@ -7,7 +7,7 @@ import torch
 from conftest import CASES
 from torchsph.config import load_case
 from torchsph.runner import make_simulation, run_steps
-from torchsph.scenes import poiseuille_exact, taylor_green_exact
+from torchsph.analytic import poiseuille_exact, taylor_green_exact
 from torchsph.simulation import SimulationError
 
 

@@ -12,7 +12,7 @@ EVERYWHERE = PACKAGES + ("scripts", "tests")
 
 
 def _files(dirs):
-    return [p for d in dirs for p in sorted((ROOT / d).glob("*.py"))]
+    return [p for d in dirs for p in sorted((ROOT / d).rglob("*.py"))]  # subpackages (torchsph/terms) included
 
 
 def _module(p: Path) -> str:

@@ -9,7 +9,7 @@ from torchsph.config import load_case
 from torchsph.kernels import WendlandC2
 from torchsph.neighbors import Domain, NeighbourTable, build_table
 from torchsph.runner import make_simulation, run_steps
-from torchsph.scenes import conduction_1d_exact, gaussian_bump_exact
+from torchsph.analytic import conduction_1d_exact, gaussian_bump_exact
 from torchsph.state import ParticleState, Phase
 from torchsph.thermal import Conduction, ThermalParams, effective_heat_capacity, enthalpy
 
@@ -108,7 +108,7 @@ def test_thermal_limit_binds_without_fluid():
 
 def test_one_phase_stefan_front_vs_neumann():
     """Melt front s(t) = 2 lambda sqrt(alpha t) within 3 % (apparent heat capacity, 2.11)."""
-    from torchsph.thermal import melt_front, neumann_lambda
+    from torchsph.analytic import melt_front, neumann_lambda
 
     _, cfg = load_case(CASES / "stefan_1d")
     scene, sim = make_simulation(cfg)

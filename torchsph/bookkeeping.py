@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 
+from . import rates
 from .state import ParticleState, Phase
 from .thermal import stored_energy
 
@@ -44,7 +45,7 @@ def rigid_body(sim) -> torch.Tensor | None:
 
 def work_set(sim) -> torch.Tensor:
     """Refresh the active set (at a neighbour rebuild) and return its work mask."""
-    sim.active_set.refresh(sim.state, getattr(sim.thermal, "lit", None))
+    sim.active_set.refresh(sim.state, rates.source_mask(sim))
     return sim.active_set.work
 
 

@@ -23,6 +23,7 @@ import torch
 
 from .neighbors import NeighbourTable
 from .state import ParticleState
+from .terms import available as available_terms
 
 PHYSICS_SECTIONS = ("scene", "fluid", "thermal", "beam", "surface", "numerics")
 FORMAT = 1
@@ -32,16 +33,27 @@ class CheckpointError(RuntimeError):
     """A checkpoint that cannot be used for this case (message: one line)."""
 
 
+def physics_sections(cfg: dict) -> tuple[str, ...]:
+    """The sections that define the physics: the core ones, and the composable terms' that
+    the case (or the recorded physics) names."""
+    return PHYSICS_SECTIONS + tuple(k for k in available_terms() if k in cfg)
+
+
 def config_hash(cfg: dict) -> str:
     """Hash of the sections that define the physics (not [run]: a restart may change the end
     time, output interval or device)."""
-    phys = {k: cfg.get(k) for k in PHYSICS_SECTIONS}
+    phys = physics(cfg)
     return hashlib.sha256(json.dumps(phys, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def physics(cfg: dict) -> dict:
-    """The physics sections of a case as plain JSON data (what a checkpoint records)."""
-    return json.loads(json.dumps({k: cfg.get(k) for k in PHYSICS_SECTIONS}, sort_keys=True, default=str))
+    """The physics sections of a case as plain JSON data (what a checkpoint records); the
+    beams are all the case's, its scene's derived ones included."""
+    from .scenes import case_beams
+
+    phys = {k: cfg.get(k) for k in physics_sections(cfg)}
+    phys["beam"] = case_beams(cfg) or cfg.get("beam")
+    return json.loads(json.dumps(phys, sort_keys=True, default=str))
 
 
 def _defaults(section: str, cfg: dict) -> dict:
@@ -52,7 +64,8 @@ def _defaults(section: str, cfg: dict) -> dict:
         spec = SCENES.get(cfg.get("scene", {}).get("type"))
         schema = spec.schema if spec is not None else {}
     else:
-        schema = {"fluid": C.FLUID, "thermal": C.THERMAL, "surface": C.SURFACE, "numerics": C.NUMERICS}.get(section, {})
+        schema = {"fluid": C.FLUID, "thermal": C.THERMAL, "surface": C.SURFACE, "numerics": C.NUMERICS,
+                  **{k: term.schema for k, term in available_terms().items()}}.get(section, {})
     dflt = {k: key.default for k, key in schema.items() if key.default is not C.REQUIRED}
     if section == "numerics" and cfg.get("scene", {}).get("type") in SCENES:  # the scene's verified numerics
         dflt.update(SCENES[cfg["scene"]["type"]].numerics)
@@ -72,7 +85,8 @@ def _changed(old: dict, cfg: dict) -> list[tuple[str, object, object]]:
     key the checkpoint lacks is not a difference when the case has it at its default (a key
     added by a newer version of the code that keeps the old behaviour by default)."""
     new, out = physics(cfg), []
-    for sec in PHYSICS_SECTIONS:
+    terms = sorted((set(physics_sections(old)) | set(physics_sections(new))) - set(PHYSICS_SECTIONS))
+    for sec in PHYSICS_SECTIONS + tuple(terms):
         a, b = old.get(sec), new.get(sec)
         if isinstance(a, dict) and isinstance(b, dict):
             dflt = _defaults(sec, cfg)
@@ -162,6 +176,7 @@ def snapshot(sim) -> dict:
     sf = sim.surface_model
     if sf is not None:
         d["surface"] = {"normal": _cpu(sf.normal), "kappa": _cpu(sf.kappa)}
+    d["terms"] = {f"{term.section}.{k}": _cpu(v) for term in sim.terms for k, v in term.arrays().items()}
     return d
 
 
@@ -285,6 +300,7 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     sf = sim.surface_model
     if sf is not None and "surface" in d:
         caches.update({f"sf.{k}": to(v) for k, v in d["surface"].items() if v is not None})
+    caches.update({k: to(v) for k, v in d.get("terms", {}).items() if v is not None})
     # pair subsets anew (a function of the table and the phases), the caches as they were
     sim.rearm(caches)
     torch.set_rng_state(d["rng"])

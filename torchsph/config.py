@@ -12,6 +12,7 @@ from pathlib import Path
 
 
 from .schema import REQUIRED, CaseError, Key  # noqa: F401 (re-exported)
+from .terms import available as available_terms
 
 
 def _fmt(v) -> str:
@@ -179,7 +180,12 @@ SURFACE = {
                               "only, e.g. a drop: on a closed surface the continuum forces have none)"),
 }
 
-TOP = ("scene", "fluid", "thermal", "beam", "surface", "numerics", "run", "preview")
+CORE = ("scene", "fluid", "thermal", "beam", "surface", "numerics", "run", "preview")
+
+
+def sections() -> tuple[str, ...]:
+    """Every section a case may hold: the core ones and one per registered term."""
+    return CORE + tuple(available_terms())
 
 
 def _set_dotted(raw: dict, dotted: str, value_text: str):
@@ -227,9 +233,10 @@ def validate(raw: dict) -> dict:
     from .scenes import SCENES
 
     raw = {k: v for k, v in raw.items() if k != "preview"}  # applied by load_case(preview=True)
-    unknown = sorted(set(raw) - set(TOP))
+    top = sections()
+    unknown = sorted(set(raw) - set(top))
     if unknown:
-        raise CaseError(f"unknown section [{unknown[0]}] (allowed: {', '.join(TOP)})")
+        raise CaseError(f"unknown section [{unknown[0]}] (allowed: {', '.join(top)})")
     for sec in ("scene", "fluid", "run"):
         if sec not in raw:
             raise CaseError(f"missing section [{sec}]")
@@ -306,6 +313,14 @@ def validate(raw: dict) -> dict:
         if su["tension_N_m"] == 0 and su["dtension_dT_N_mK"] == 0 and not su["recoil"]:
             raise CaseError("[surface] declares no force: set tension_N_m > 0, dtension_dT_N_mK != 0 "
                             "or recoil = true (or remove the section)")
+    for sec, term in available_terms().items():  # the composable terms a case names
+        if sec not in raw:
+            continue
+        cfg[sec] = validate_section(sec, raw[sec], term.schema, dim)
+        for need in term.needs:
+            if need not in raw:
+                raise CaseError(f"[{sec}] needs a [{need}] section ({term.doc})")
+        term.check(cfg)
     run = cfg["run"]
     if (run["t_end_s"] is None) == (run["steps"] is None):
         raise CaseError("[run]: give exactly one of t_end_s or steps "

@@ -352,9 +352,6 @@ def check(cfg):
             raise CaseError(f"[scene] escape_margin_m = {sc['escape_margin_m']}: must exceed the search "
                             f"radius {reach:g} m (kernel support + Verlet skin at dx_m = {sc['dx_m']}), or a "
                             "particle removed there could still have had neighbours in the scene")
-    beams = source_beams(sc)
-    if beams and "thermal" in cfg:
-        cfg["beam"] = cfg.get("beam", []) + beams
 
 
 def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: float, rho0: float,

@@ -31,6 +31,8 @@ class SceneSpec:
     needs_thermal: bool = False
     # the [numerics] the scene's verification measured: a case that names no numerics gets these
     numerics: dict = field(default_factory=dict)
+    # the heat sources the scene derives from its own keys ([[beam]] tables, beside the case's)
+    beams: Callable | None = None
 
 
 def lattice(counts, dx, origin=None, dtype=torch.float64, device="cpu"):

@@ -85,6 +85,8 @@ def limits(sim) -> dict[str, float]:
         if sim.thermal.losses.evaporation:
             lim["evaporation"] = evaporation_limit(sim.thermal, sim.state)
             lim["heating"] = heating_limit(sim)
+    for term in sim.terms:  # the composable terms' own limits
+        lim.update(term.limits(sim))
     dev = [k for k, v in lim.items() if isinstance(v, torch.Tensor)]
     if dev:  # the limits computed on the device: one read
         lim.update(zip(dev, torch.stack([lim[k].reshape(()) for k in dev]).tolist()))
@@ -111,13 +113,15 @@ def binding(lim: dict[str, float]) -> tuple[str, float]:
     return name, lim[name]
 
 
-def check_fixed_dt(dt_fixed: float, lim: dict[str, float], allow_unstable: bool):
-    """Refuse a fixed dt above any stability limit unless the case allows it."""
+def check_fixed_dt(dt_fixed: float, lim: dict[str, float], allow_unstable: bool, formulas: dict | None = None):
+    """Refuse a fixed dt above any stability limit unless the case allows it (``formulas``:
+    the terms' limits' formulas, beside :data:`LIMIT_FORMULAS`)."""
+    formulas = {**LIMIT_FORMULAS, **(formulas or {})}
     for name, val in sorted(lim.items(), key=lambda kv: kv[1]):
         if dt_fixed > val and not allow_unstable:
             raise UnstableStepError(
                 f"numerics.dt_s = {dt_fixed:g} s exceeds the {name} limit {val:.4g} s "
-                f"({LIMIT_FORMULAS[name]}); lower dt_s, remove it for the automatic step, "
+                f"({formulas.get(name, name)}); lower dt_s, remove it for the automatic step, "
                 "or set numerics.allow_unstable_dt = true")
 
 

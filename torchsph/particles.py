@@ -25,7 +25,8 @@ RENAMED = {"th._zeta": "th.zeta_cache", "th._area": "th.area_cache", "th._zeta_o
 
 
 def _owners(sim) -> dict:
-    return {"th": sim.thermal, "sf": sim.surface_model, "as": sim.active_set, "nl": sim.nl}
+    return {"th": sim.thermal, "sf": sim.surface_model, "as": sim.active_set, "nl": sim.nl,
+            **{term.section: term for term in sim.terms}}
 
 
 def particle_arrays(sim) -> dict[str, torch.Tensor]:
@@ -51,6 +52,8 @@ def particle_arrays(sim) -> dict[str, torch.Tensor]:
     a = sim.active_set
     if a is not None:
         d.update({"as.active": a.active, "as.work": a.work, "as.frontier": a.frontier})
+    for term in sim.terms:  # the composable terms' own arrays, under their section
+        d.update({f"{term.section}.{k}": v for k, v in term.arrays().items()})
     return {k: v for k, v in d.items() if v is not None}
 
 
@@ -68,7 +71,10 @@ def set_particle_arrays(sim, d: dict[str, torch.Tensor]):
             setattr(sim, k, v)
             continue
         owner, name = k.split(".", 1)
-        setattr(owners[owner], name, v)
+        if owner in ("th", "sf", "as", "nl"):
+            setattr(owners[owner], name, v)
+        else:
+            owners[owner].set_array(name, v)
     fluid_set(sim)
 
 
@@ -92,7 +98,8 @@ def rearm(sim, arrays: dict[str, torch.Tensor], table=None):
     if table is not None:
         table()
     sim.select_pairs()
-    set_particle_arrays(sim, {k: v for k, v in arrays.items() if k.startswith(("th.", "sf."))})
+    caches = ("th.", "sf.") + tuple(f"{term.section}." for term in sim.terms)
+    set_particle_arrays(sim, {k: v for k, v in arrays.items() if k.startswith(caches)})
     if sim.fluid is not None:
         saved = sim.dvdt
         sim.fluid.momentum(sim.state, sim.state.v)  # sets p and the cached geometry only
@@ -123,6 +130,8 @@ def add_particles(sim, new: ParticleState):
         sim.energy["fed"] = sim.energy.get("fed", 0.0) + fed
     if sim.active_set is not None:
         sim.active_set.pad(new.n)
+    for term in sim.terms:
+        term.add_particles(new)
     fluid_set(sim)
     return new, sim.comm.place_new(sim, new.n)
 

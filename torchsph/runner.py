@@ -13,13 +13,14 @@ from . import io as sio
 from .fluid import FluidParams, WeaklyCompressibleFluid
 from .free_surface import ColourGradient
 from .kernels import make_kernel
-from .scenes import SCENES, Scene, build_scene
+from .scenes import SCENES, Scene, build_scene, case_beams
 from .beam import Beam
 from .thermal import Conduction, SurfaceLosses, ThermalParams
 from .active import ActiveSet
 from .simulation import Simulation
 from .surface import SurfaceForces, SurfaceParams
 from .progress import Progress, projection_lines
+from .terms import TermContext, available as available_terms
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
@@ -64,7 +65,7 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
         k = torch.full((scene.state.n,), tp.conductivity, dtype=scene.state.dtype,
                        device=scene.state.device)
         beams = [Beam(b["power_W"], b["efficiency"], b["radius_m"], tuple(b["direction"]),
-                      tuple(b["aim_m"]), tuple(b["velocity_m_s"])) for b in cfg.get("beam", [])]
+                      tuple(b["aim_m"]), tuple(b["velocity_m_s"])) for b in case_beams(cfg)]
         losses = SurfaceLosses(ambient=th["ambient_K"], emissivity=th["emissivity"],
                                convection=th["convection_W_m2K"], evaporation=th["evaporation"],
                                boiling_point=th["boiling_point_K"],
@@ -88,6 +89,9 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
     if nm["skip_cold_solid"] and thermal is not None:
         support = kernel.radius(h)
         active = ActiveSet(nm["active_tolerance_K"], cfg["thermal"]["ambient_K"], support, support + skin)
+    ctx = TermContext(dx=scene.dx, h=h, kernel=kernel, domain=scene.domain, dim=dim, dtype=scene.state.dtype,
+                      device=scene.state.device)
+    terms = [term.from_case(cfg, ctx) for sec, term in available_terms().items() if sec in cfg]
     sim = Simulation(scene.state, fluid, scene.domain, skin=skin,
                      cfl=nm["cfl"], dt_fixed=nm["dt_s"], allow_unstable_dt=nm["allow_unstable_dt"],
                      max_compression=nm["max_compression"], dx=scene.dx,
@@ -95,7 +99,7 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
                      phase_change=(cfg["thermal"]["solidus_K"], cfg["thermal"]["liquidus_K"],
                                    cfg["thermal"]["mushy_drag_1_s"]) if phase_change else None,
                      surface=surface, active=active, feeder=scene.info.get("feeder"), escape=scene.info.get("escape"),
-                     comm=comm, partial_rebuild=nm.get("partial_rebuild", True))
+                     comm=comm, partial_rebuild=nm.get("partial_rebuild", True), terms=terms)
     if comm is not None:
         comm.check(sim)
     return scene, sim
@@ -147,6 +151,7 @@ def physics_plan(sim: Simulation) -> dict:
                  "recoil": sf is not None and sf.prm.recoil,
                  "active_set": (f"on (tolerance {sim.active_set.tol:g} K)" if sim.active_set is not None
                                 else "off")})
+    plan.update({term.section: term.plan() for term in sim.terms})
     return plan
 
 

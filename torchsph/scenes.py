@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from . import deposition
+from .analytic import gaussian_bump_exact, taylor_green_exact
 from .lattice import Scene, SceneSpec, lattice, solid_block, tait_density  # noqa: F401 (re-exported)
 from .schema import CaseError, Key
 from .neighbors import Domain
@@ -40,15 +41,6 @@ def _need_wall_layers(cfg):
 
 
 # --- Taylor-Green vortex -------------------------------------------------------
-def taylor_green_exact(x, t, L, U, nu):
-    """Velocity field of the 2-D Taylor-Green vortex, u = -U cos(kx) sin(ky) e^{-2 k^2 nu t}."""
-    k = 2.0 * math.pi / L
-    decay = math.exp(-2.0 * k * k * nu * t)
-    u = -U * torch.cos(k * x[:, 0]) * torch.sin(k * x[:, 1]) * decay
-    v = U * torch.sin(k * x[:, 0]) * torch.cos(k * x[:, 1]) * decay
-    return torch.stack([u, v], dim=-1)
-
-
 def build_taylor_green(cfg, dtype, device) -> Scene:
     sc, fl = cfg["scene"], cfg["fluid"]
     L, nx, U = sc["length_m"], sc["nx"], sc["U_m_s"]
@@ -73,18 +65,6 @@ def check_taylor_green(cfg):
 
 
 # --- Poiseuille channel ----------------------------------------------------------
-def poiseuille_exact(y, t, H, F, nu, terms=200):
-    """Start-up Poiseuille flow between plates y = 0 and y = H driven by acceleration F."""
-    u = F / (2.0 * nu) * y * (H - y)
-    if t == math.inf:
-        return u
-    for n in range(terms):
-        k = 2 * n + 1
-        u = u - 4.0 * F * H * H / (nu * math.pi**3 * k**3) * torch.sin(k * math.pi * y / H) * \
-            math.exp(-(k * k) * math.pi**2 * nu * t / (H * H))
-    return u
-
-
 def wall_slabs(nx_len, layers, dx, H, dtype, device):
     below = lattice((nx_len, layers), dx, origin=(0.0, -layers * dx), dtype=dtype, device=device)
     above = lattice((nx_len, layers), dx, origin=(0.0, H), dtype=dtype, device=device)
@@ -188,13 +168,6 @@ def _cross_section(cfg) -> int:
     return math.ceil(2.0 * _support_cells(cfg)) + 1
 
 
-def conduction_1d_exact(x, t, alpha, T_face, T0):
-    """Semi-infinite solid, face x = 0 held at T_face from t = 0: T0 + dT erfc(x / 2 sqrt(a t))."""
-    if t <= 0:
-        return torch.where(x > 0, torch.full_like(x, T0), torch.full_like(x, T_face))
-    return T0 + (T_face - T0) * torch.special.erfc(x / (2.0 * math.sqrt(alpha * t)))
-
-
 def build_conduction_1d(cfg, dtype, device) -> Scene:
     sc, fl = cfg["scene"], cfg["fluid"]
     d, L, nx, layers = sc["dim"], sc["length_m"], sc["nx"], sc["wall_layers"]
@@ -213,23 +186,6 @@ def build_conduction_1d(cfg, dtype, device) -> Scene:
     return Scene(ParticleState.cat([solid, wall]), Domain(lo, hi, [False] + [True] * (d - 1)), dx,
                  {"alpha": alpha, "T_face": sc["face_temperature_K"], "T0": sc["initial_temperature_K"],
                   "L": L})
-
-
-def gaussian_bump_exact(x, t, alpha, center, sigma, A, Tb, domain):
-    """Diffusion of T = Tb + A exp(-r^2 / (2 sigma^2)) in a periodic box: the free-space
-    solution summed over the 3^d nearest periodic images of the bump."""
-    import itertools
-
-    d = x.shape[1]
-    s2 = sigma * sigma + 2.0 * alpha * t
-    c = torch.as_tensor(center, dtype=x.dtype, device=x.device)
-    r0 = domain.minimum_image(x - c)
-    L = torch.as_tensor(domain.length, dtype=x.dtype, device=x.device)
-    total = torch.zeros_like(x[:, 0])
-    for img in itertools.product((-1, 0, 1), repeat=d):
-        r = r0 + torch.as_tensor(img, dtype=x.dtype, device=x.device) * L
-        total = total + torch.exp(-(r * r).sum(-1) / (2.0 * s2))
-    return Tb + A * (sigma * sigma / s2) ** (d / 2) * total
 
 
 def build_gaussian_bump(cfg, dtype, device) -> Scene:
@@ -392,8 +348,25 @@ SCENES: dict[str, SceneSpec] = {
         lambda cfg: deposition.check(cfg),
         "substrate moving under a fed wire, sources aimed at the wire tip",
         has_fluid=False, needs_thermal=True,
-        numerics={"density_diffusion": 0.1}),  # as in the four thesis cases
+        numerics={"density_diffusion": 0.1},  # as in the four thesis cases
+        beams=lambda cfg: deposition.source_beams(cfg["scene"])),
 }
+
+
+def case_beams(cfg: dict) -> list[dict]:
+    """Every beam of a case ([[beam]] tables): the case's own and those its scene derives
+    from its keys (the deposition scene's sources). Validation leaves the case as written;
+    the derived beams are made here. A configuration recorded by an older version carries
+    the derived beams among its own: they are not added twice."""
+    own = list(cfg.get("beam") or [])
+    spec = SCENES.get(cfg.get("scene", {}).get("type"))
+    if spec is None or spec.beams is None or "thermal" not in cfg:
+        return own
+    try:
+        derived = spec.beams(cfg)
+    except KeyError:  # a recorded configuration from before one of the scene's keys
+        return own
+    return own + [b for b in derived if b not in own]
 
 
 def build_scene(cfg, dtype=torch.float64, device="cpu") -> Scene:

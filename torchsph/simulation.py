@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from . import bookkeeping, diagnosis, limits as step_limits, particles
+from . import bookkeeping, diagnosis, limits as step_limits, particles, rates
 from .active import ActiveSet
 from .comm import SerialComm
 from .fluid import WeaklyCompressibleFluid
@@ -38,7 +38,7 @@ class Simulation:
                  damping_time: float = 0.0, thermal: Conduction | None = None,
                  phase_change: tuple[float, float, float] | None = None,
                  surface: SurfaceForces | None = None, active: ActiveSet | None = None,
-                 feeder=None, comm=None, escape=None, partial_rebuild: bool = True):
+                 feeder=None, comm=None, escape=None, partial_rebuild: bool = True, terms=()):
         """``fluid`` and ``thermal`` are the physics a scene declares; either may be None
         and then costs nothing (a conduction study has no momentum, a flow no energy).
         ``active`` leaves cold quiescent solid out of the work (:mod:`torchsph.active`);
@@ -47,8 +47,14 @@ class Simulation:
         (``outside(x, t)``, :class:`~torchsph.deposition.EscapeBox`): they are removed at the
         next neighbour rebuild. ``partial_rebuild``: neighbour rebuilds keep the largest rigid
         body's mutual pairs and search only the other rows (:class:`~torchsph.neighbors.VerletList`;
-        one process, scenes with fluid)."""
+        one process, scenes with fluid). ``terms``: the composable terms the case names
+        (:mod:`torchsph.terms`), each evaluated at its hooks and nowhere else."""
         self.state = state
+        self.terms = list(terms)
+        self.heat_terms = [t for t in self.terms if "heat" in t.writes]
+        self.force_terms = [t for t in self.terms if "acceleration" in t.writes]
+        if (self.heat_terms and thermal is None) or (self.force_terms and fluid is None):
+            raise ValueError("Simulation: a heat term needs the thermal model, a force term the fluid model")
         self.comm = comm if comm is not None else SerialComm()  # decomposition hooks (no-ops in one process)
         self.rebuilt = False  # the last step rebuilt the neighbour list
         self.new_body_velocity = False
@@ -101,7 +107,7 @@ class Simulation:
         self.E0 = None  # J, the stored energy at the start
         self.T_prev = state.T  # the temperatures before the step (for a diagnosis)
         if thermal is not None:
-            P, self.heat_totals = thermal.power(state, state.T, 0.0)
+            P, self.heat_totals = rates.heat_power(self, state.T, 0.0)
             self.dTdt = P / state.m
             self.E0 = stored_energy(state, thermal.prm, 0.0, self.comm.owned(self))
         self.comm.end_step(self)  # ghosts (if any) take their owners' values
@@ -122,15 +128,8 @@ class Simulation:
         return self.surface_model if self.n_fluid > 0 else None
 
     def accelerations(self, v_eval, terms: bool = False):
-        """Fluid (pressure, viscous, body) plus free-surface accelerations at the state."""
-        out = self.fluid.momentum(self.state, v_eval, terms=terms)
-        if self.surface is None:
-            return out
-        if not terms:  # the surface particles' accelerations added into the fresh array
-            rows, a_s = self.surface.accelerations(self.state, rows_only=True)
-            return out.index_add_(0, rows, a_s)
-        a_s, parts_s = self.surface.accelerations(self.state, terms=True)
-        return out[0] + a_s, {**out[1], **parts_s}
+        """The momentum equation's rates (:func:`torchsph.rates.accelerations`)."""
+        return rates.accelerations(self, v_eval, terms)
 
     # --- neighbours ---------------------------------------------------------
     def refresh_pairs(self, force: bool = False):
@@ -170,6 +169,8 @@ class Simulation:
             self.thermal.select_pairs(self.state, self.nl.table, active=self.active_mask,
                                       work=self.active_set.work if self.active_set is not None else None,
                                       x_ref=self.nl.x_ref, new_table=new_table)
+        for term in self.terms:
+            term.select(self)
         self.plan.select(self)
 
     # --- time-step control (torchsph.limits) --------------------------------
@@ -196,7 +197,8 @@ class Simulation:
 
     def check_fixed_dt(self):
         """Refuse a fixed dt above any stability limit unless the case allows it."""
-        step_limits.check_fixed_dt(self.dt_fixed, self.limits(), self.allow_unstable_dt)
+        formulas = {k: v for term in self.terms for k, v in term.limit_formulas.items()}
+        step_limits.check_fixed_dt(self.dt_fixed, self.limits(), self.allow_unstable_dt, formulas)
 
     # --- one step -----------------------------------------------------------
     def advance(self, dt: float | None = None, limit: str = "given") -> StepInfo:
@@ -282,7 +284,7 @@ class Simulation:
             solid = (s.phase == Phase.SOLID).unsqueeze(-1)
             s.v = torch.where(solid, self.body_velocity.index_select(0, s.body), s.v)
         if self.thermal is not None:
-            P, heat = self.thermal.power(s, s.T, self.t + dt)  # 2 (W per particle; 0 on walls)
+            P, heat = rates.heat_power(self, s.T, self.t + dt)  # 2 (W per particle; 0 on walls)
             self.dTdt = P / s.m
             for k, v in heat.items():  # accumulated on the device: no sync per step
                 self.energy[k] = self.energy.get(k, 0.0) + 0.5 * dt * (self.heat_totals[k] + v)
@@ -302,7 +304,7 @@ class Simulation:
         self.comm.end_step(self)
         self.info = self.measure()
         diagnosis.check_finite(self, v_tilde, dt, limit)
-        if self.active_set is not None and self.comm.any(self.active_set.stale(s, getattr(self.thermal, "lit", None))):
+        if self.active_set is not None and self.comm.any(self.active_set.stale(s, rates.source_mask(self))):
             self.stale = True  # heat reached the frontier band: refresh at the next rebuild point
         self.plan.add(self)
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])

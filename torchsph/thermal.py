@@ -562,30 +562,3 @@ def stored_energy(state: ParticleState, prm: ThermalParams, T_ref: float, owned=
 
 __all__ = ["ThermalParams", "Conduction", "SurfaceLosses", "effective_heat_capacity", "enthalpy",
            "temperature_from_enthalpy", "liquid_fraction", "conduction_pairs"]
-
-
-def neumann_lambda(stefan: float) -> float:
-    """Root of lambda exp(lambda^2) erf(lambda) = St / sqrt(pi) (one-phase Stefan problem)."""
-    lo, hi = 0.0, 5.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if mid * math.exp(mid * mid) * math.erf(mid) > stefan / math.sqrt(math.pi):
-            hi = mid
-        else:
-            lo = mid
-    return 0.5 * (lo + hi)
-
-
-def melt_front(x: torch.Tensor, T: torch.Tensor, T_m: float) -> float:
-    """Position where the (cross-section averaged) temperature profile T(x), decreasing
-    in x, crosses T_m, by linear interpolation between particle columns."""
-    xs, inv = torch.unique(x, return_inverse=True)
-    Tm = torch.zeros_like(xs).index_add_(0, inv, T) / torch.bincount(inv, minlength=xs.numel()).to(T.dtype)
-    below = torch.nonzero(Tm < T_m)
-    if below.numel() == 0:
-        return float(xs[-1])
-    k = int(below[0])
-    if k == 0:
-        return float(xs[0])
-    x0, x1, T0, T1 = float(xs[k - 1]), float(xs[k]), float(Tm[k - 1]), float(Tm[k])
-    return x0 + (T0 - T_m) * (x1 - x0) / (T0 - T1)

@@ -1,0 +1,120 @@
+"""The term protocol: a physics term that a case switches on by naming its section, and
+that the step evaluates without naming it.
+
+A term declares
+- ``section`` and ``schema``: its case section and keys (validated like every section;
+  ``needs``: the sections it cannot work without, ``check``: rules across keys);
+- ``reads`` and ``writes``: the particle fields it reads, and the rates it adds to
+  (``"heat"``: W per particle into the energy equation; ``"acceleration"``: m/s^2 into the
+  momentum equation);
+- its time-step limits (``limits``, seconds, with ``limit_formulas`` for the messages);
+- its per-particle arrays (``arrays`` / ``set_array`` / ``add_particles``), which the one
+  array registry (:mod:`torchsph.particles`) carries through checkpoints, MPI migration and
+  ghost refresh, and particle insertion and removal;
+- for a heat source, ``seeds``: the particles it heats, which the active set keeps in the work.
+
+A term that a case does not name is never built, so it costs nothing. The step calls the
+hooks at fixed points (:class:`torchsph.simulation.Simulation`): ``select`` after every pair
+selection, ``heat`` with the conduction and beams, ``acceleration`` with the fluid forces,
+``limits`` with the others."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from ..schema import Key
+
+RATES = ("heat", "acceleration")
+
+
+@dataclass
+class TermContext:
+    """What a term may build itself from, besides the validated case: the scene's spacing,
+    the smoothing length and kernel, the domain, and the float type and device."""
+    dx: float
+    h: float
+    kernel: Any
+    domain: Any
+    dim: int
+    dtype: torch.dtype
+    device: Any
+
+
+class Term:
+    """Base class of a composable physics term (see the module doc)."""
+
+    section: str = ""
+    doc: str = ""
+    schema: dict[str, Key] = {}
+    needs: tuple[str, ...] = ()
+    reads: tuple[str, ...] = ()
+    writes: tuple[str, ...] = ()
+    limit_formulas: dict[str, str] = {}
+
+    @classmethod
+    def check(cls, cfg: dict) -> None:
+        """Rules across keys or sections (raise :class:`~torchsph.schema.CaseError`)."""
+
+    @classmethod
+    def from_case(cls, cfg: dict, ctx: TermContext) -> "Term":
+        raise NotImplementedError(f"term [{cls.section}] has no from_case")
+
+    # --- hooks the step calls (defaults: nothing) ------------------------------
+    def select(self, sim) -> None:
+        """After every pair selection (a neighbour rebuild, a phase change, a restore)."""
+
+    def heat(self, sim, t: float, rows: torch.Tensor) -> torch.Tensor:
+        """W per particle on ``rows`` (the conducting rows) at time ``t``."""
+        raise NotImplementedError
+
+    def acceleration(self, sim, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(rows, accelerations on them) at the end of the step (``v``: the velocities the
+        viscous forces are evaluated with)."""
+        raise NotImplementedError
+
+    def seeds(self, sim, t: float) -> torch.Tensor | None:
+        """Mask of the particles this term heats at time ``t`` (kept in the active set)."""
+        return None
+
+    def limits(self, sim) -> dict[str, Any]:
+        """Time-step limits (s): numbers, or 0-d device tensors (read with the others at once)."""
+        return {}
+
+    def arrays(self) -> dict[str, torch.Tensor]:
+        """Per-particle arrays carried from one step to the next (first dimension: particles)."""
+        return {}
+
+    def set_array(self, name: str, value: torch.Tensor) -> None:
+        setattr(self, name, value)
+
+    def add_particles(self, new) -> None:
+        """Extend the per-particle arrays for particles appended to the state."""
+
+    def plan(self) -> Any:
+        """What the physics plan reports for this term."""
+        return True
+
+
+TERMS: dict[str, type[Term]] = {}
+
+
+def register(cls: type[Term]) -> type[Term]:
+    """Class decorator: make a term available to cases under its ``section``."""
+    bad = set(cls.writes) - set(RATES)
+    if not cls.section or bad:
+        raise TypeError(f"{cls.__name__}: a term needs a section and writes only {RATES} (got {sorted(bad)})")
+    if cls.section in TERMS and TERMS[cls.section] is not cls:
+        raise TypeError(f"{cls.__name__}: section [{cls.section}] is taken by {TERMS[cls.section].__name__}")
+    TERMS[cls.section] = cls
+    return cls
+
+
+def owned_sum(sim, rows: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """The sum of ``p`` (values on ``rows``) over the particles this process owns (a
+    decomposed run books its own particles only; ghosts are copies)."""
+    own = sim.comm.owned(sim)
+    if own is not None:
+        p = torch.where(own.index_select(0, rows), p, torch.zeros_like(p))
+    return p.sum()
