@@ -24,6 +24,7 @@ def final_state(path):
     ("poiseuille_2d", ["scene.n_height=20"], 60),             # fluid + walls, Verlet rebuilds
     ("oscillating_drop_2d", ["scene.dx_m=1e-4"], 40),          # free surface forces + shifting off
     ("beam_plate", ["run.t_end_s=0.02"], 30),                  # beam, latent heat, conduction
+    ("preheated_block", ["heating.t_end_s=0.004"], 10),       # a composed term ([heating]) switching off
 ])
 def test_restart_is_bit_for_bit(tmp_path, case, over, K):
     """float64: K steps == K/2 steps + checkpoint + restart + K/2 steps, every field equal."""
