@@ -6,7 +6,12 @@ shallower bead. In the energy equation (SPEC (2.11)) it is one more source,
 
 so a particle of volume V_i = m_i / rho_i gains P_i = q''' V_i (W). With no conduction
 across the box's faces (the whole body heated, or an insulated body) the temperature rises
-as dh/dt = q''' / rho: T(t) = T0 + q''' t / (rho c_p) without latent heat."""
+as dh/dt = q''' / rho: T(t) = T0 + q''' t / (rho c_p) without latent heat.
+
+The source is evaluated at the ends of each step (the step's trapezoid), so a switch time
+that falls inside a step is resolved to that step: the energy booked (``heating_J``) is
+what was integrated, to round-off, and differs from q V (t_end - t_start) by up to half a
+step's heating at each switch."""
 from __future__ import annotations
 
 import math
