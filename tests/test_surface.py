@@ -220,7 +220,7 @@ def test_thermocapillary_return_flow_birikh():
 def test_blow_up_above_the_capillary_limit_is_diagnosed():
     """A drop stepped at 8x the acoustic limit (2.3x the capillary one) blows up within a
     few steps; the one-line diagnosis names the particle, the surface-tension term and the
-    limits the step exceeded (scripts/stress.py: stable up to 4x, i.e. 1.1x capillary)."""
+    limits the step exceeded (scripts/tools/stress.py: stable up to 4x, i.e. 1.1x capillary)."""
     assert_blow_up_diagnosed("oscillating_drop_2d", ["scene.dx_m=1e-4"], "acoustic", 8, 50,
                              ("blow-up at step", "particle id", "largest term there: surface_tension",
                               "capillary x"))

@@ -231,7 +231,7 @@ def test_rosenthal_isotherm():
     at t = 0.45 s the T_L isotherm's length and width are within 5 % of Rosenthal's
     point-source solution and of its superposition over the Gaussian spot. dx = 0.25 mm,
     24 x 12 x 6 mm plate (1.1e5 particles), pair loops compiled; the finer run is
-    scripts/rosenthal.py, quoted in the README."""
+    scripts/studies/rosenthal.py, quoted in the README."""
     from torchsph.rosenthal import run_study
 
     r = run_study(0.25e-3, t_end=0.45, power=800.0, radius=0.5e-3, x_start=-8e-3, length=24e-3,

@@ -1,9 +1,9 @@
 """Thesis §5.3 / Fig. 5.9: the 5 mm steel cube under a 300 W beam, with the mechanisms
 switched on one by one. Prints peak temperature and keyhole depth per run.
 
-    python scripts/cube_evaporation.py                      # preview (dx = 0.25 mm), all four
-    python scripts/cube_evaporation.py --variants a c       # some of them
-    python scripts/cube_evaporation.py --case cases/cube_evaporation --t-end 0.05   # full resolution
+    python scripts/studies/cube_evaporation.py                      # preview (dx = 0.25 mm), all four
+    python scripts/studies/cube_evaporation.py --variants a c       # some of them
+    python scripts/studies/cube_evaporation.py --case cases/cube_evaporation --t-end 0.05   # full resolution
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.config import load_case  # noqa: E402

@@ -4,8 +4,8 @@ profile of u_z along x through the centre at the end and averaged over the last 
 the run (the flow at these Reynolds numbers, ~10^3, is unsteady: the averages are the
 numbers to compare between resolutions).
 
-    python scripts/marangoni_drop.py cases/marangoni_drop_steel
-    python scripts/marangoni_drop.py cases/marangoni_drop_titanium --set scene.dx_m=0.25e-3
+    python scripts/studies/marangoni_drop.py cases/marangoni_drop_steel
+    python scripts/studies/marangoni_drop.py cases/marangoni_drop_titanium --set scene.dx_m=0.25e-3
 """
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402

@@ -1,9 +1,9 @@
 """Bead geometry vs source power and orientation (the thesis's Fig. 6.5) for the four
 deposition cases: a matplotlib PNG and a markdown/CSV table.
 
-    python scripts/compare_cases.py --preview            # runs the four previews (minutes each)
-    python scripts/compare_cases.py --read RUN250 RUN300 RUN350 RUNPERP   # finished runs
-    python scripts/compare_cases.py --read ... --time 0.30 --start-skip-mm 1 --pool-margin-mm 1.5
+    python scripts/studies/compare_cases.py --preview            # runs the four previews (minutes each)
+    python scripts/studies/compare_cases.py --read RUN250 RUN300 RUN350 RUNPERP   # finished runs
+    python scripts/studies/compare_cases.py --read ... --time 0.30 --start-skip-mm 1 --pool-margin-mm 1.5
 
 ``--time`` takes every run's snapshot nearest that time (default: each run's last), so runs
 of different length are compared at the same process time. ``--section-mm X0`` adds the
@@ -22,7 +22,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph import post  # noqa: E402

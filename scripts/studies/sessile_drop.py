@@ -8,7 +8,7 @@ the free (melt-vapour) surface carries tension; a cap of fixed area on a plane h
 free surface at 90 deg, so that is the model's equilibrium angle — what this measures, with how
 readily the contact line moves there (advancing vs receding).
 
-    python scripts/sessile_drop.py --start 60 90 120
+    python scripts/studies/sessile_drop.py --start 60 90 120
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.config import load_case  # noqa: E402

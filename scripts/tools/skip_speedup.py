@@ -1,7 +1,7 @@
 """Side-by-side cost of skipping (the active set: cold solid left out) on a deposition preview.
 
-    python scripts/skip_speedup.py cases/perpendicular_350W            # runs both (minutes)
-    python scripts/skip_speedup.py --read OUT_SKIP OUT_NOSKIP [--control OUT_NOSKIP_PERTURBED]
+    python scripts/tools/skip_speedup.py cases/perpendicular_350W            # runs both (minutes)
+    python scripts/tools/skip_speedup.py --read OUT_SKIP OUT_NOSKIP [--control OUT_NOSKIP_PERTURBED]
 
 Runs the case's preview twice, with the default skipping and with ``--no-skip`` (every
 particle integrated every step), one after the other, and prints
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.io import read_snapshot  # noqa: E402

@@ -1,8 +1,8 @@
-"""One measurement of ``scripts/bench.py --deposition`` in one process, on the code of the
+"""One measurement of ``scripts/tools/bench.py --deposition`` in one process, on the code of the
 tree ``--tree`` (this repository, or a reference commit's worktree). Prints one JSON line.
 
-    python scripts/bench_deposition_driver.py --tree DIR preview --checkpoint CK [--steps N]
-    python scripts/bench_deposition_driver.py --tree DIR full [--steps N]
+    python scripts/tools/bench_deposition_driver.py --tree DIR preview --checkpoint CK [--steps N]
+    python scripts/tools/bench_deposition_driver.py --tree DIR full [--steps N]
 
 It uses only what every version since b14e316 offers (``load_case``, ``make_simulation``,
 ``simulation_from_run``, ``run_steps``) and counts host synchronisations with this
@@ -22,7 +22,7 @@ import time
 import warnings
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parents[1]
+HERE = Path(__file__).resolve().parents[2]
 
 
 def load_counter():

@@ -9,7 +9,7 @@ shadow is not modelled: sources aimed at the wire put much of their power on it 
 (no flow, no latent heat, insulated surface), read 0.1 mm below the top face: a yardstick for whether the pool can take the
 wire, not a prediction of the bead.
 
-    python scripts/pool_estimate.py cases/perpendicular_350W [--set scene.source_aim_height_m=-0.6e-3]
+    python scripts/studies/pool_estimate.py cases/perpendicular_350W [--set scene.source_aim_height_m=-0.6e-3]
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.config import load_case  # noqa: E402

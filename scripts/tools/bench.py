@@ -2,9 +2,9 @@
 SPH codes were measured on (../shared/PERF.md): unit periodic box, Re = 100, U = 1,
 rho0 = 1, c0 = 10 U, lattice start, t_end = 1, nx in {50, 100, 200}.
 
-    python scripts/bench.py            # all rows, float64 and float32 (CUDA rows when present)
-    python scripts/bench.py --quick    # nx = 50 only
-    python scripts/bench.py --deposition [--ref b14e316]   # the deposition step against a commit
+    python scripts/tools/bench.py            # all rows, float64 and float32 (CUDA rows when present)
+    python scripts/tools/bench.py --quick    # nx = 50 only
+    python scripts/tools/bench.py --deposition [--ref b14e316]   # the deposition step against a commit
 
 linf = |max|u|(t_end) / (U exp(-8 pi^2 t / Re)) - 1|;
 L1 = mean | |u_i| - |u_exact(x_i)| | / mean |u_exact(x_i)|.
@@ -21,13 +21,13 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from torchsph.config import load_case  # noqa: E402
 from torchsph.runner import make_simulation, run_steps  # noqa: E402
 from torchsph.analytic import taylor_green_exact  # noqa: E402
 
-CASE = Path(__file__).resolve().parents[1] / "cases" / "taylor_green_2d"
+CASE = Path(__file__).resolve().parents[2] / "cases" / "taylor_green_2d"
 
 
 def tg_errors(sim, info, t):
@@ -93,7 +93,7 @@ def main(argv=None):
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--conduction-only", action="store_true", help="only the conduction table")
     ap.add_argument("--deposition", action="store_true",
-                    help="the deposition step against --ref (scripts/bench_deposition.py)")
+                    help="the deposition step against --ref (scripts/tools/bench_deposition.py)")
     ap.add_argument("--ref", default="b14e316", help="reference commit for --deposition")
     ap.add_argument("--steps", type=int, default=100, help="--deposition: timed steps on the preview state")
     ap.add_argument("--full-steps", type=int, default=50, help="--deposition: timed first steps of the full scene")

@@ -6,8 +6,8 @@ The thesis does not say where on the wire axis the sources are aimed; this table
 case's ``scene.source_aim_height_m`` is chosen: enough on the wire to melt it as fast as it
 is fed, the rest on the substrate to make a pool the melt can join.
 
-    python scripts/beam_split.py cases/perpendicular_350W --preview
-    python scripts/beam_split.py cases/along_250W --aims -0.9,-0.6,-0.3,0,0.25 --gaps 0,0.25
+    python scripts/studies/beam_split.py cases/perpendicular_350W --preview
+    python scripts/studies/beam_split.py cases/along_250W --aims -0.9,-0.6,-0.3,0,0.25 --gaps 0,0.25
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph.beam import beam_power  # noqa: E402
 from torchsph.config import load_case  # noqa: E402
 from torchsph.deposition import WIRE  # noqa: E402

@@ -3,8 +3,8 @@ vertical wire of diameter d; by Tate's law it detaches when m g = pi d sigma. Wi
 set to g = sigma pi d / m, bisection on the model's alpha finds the alpha at which the drop
 just detaches: alpha / sigma says whether the CSF model needs calibrating (1 = consistent).
 
-    python scripts/calibrate_surface_tension.py                 # dx = 0.125 mm
-    python scripts/calibrate_surface_tension.py --dx 0.1e-3 0.15e-3 --iterations 5
+    python scripts/studies/calibrate_surface_tension.py                 # dx = 0.125 mm
+    python scripts/studies/calibrate_surface_tension.py --dx 0.1e-3 0.15e-3 --iterations 5
 
 The wire is a cylinder of wall particles (no-slip, Adami pressure: the melt wets its end);
 the drop is a ball of radius R touching the wire's end face. "Detached" = the drop's centre
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.config import load_case  # noqa: E402

@@ -1,7 +1,7 @@
 """How a run's step cost grows with its heated zone: ms per step over windows of process time.
 
-    python scripts/step_cost.py CASE --t-end T [--window W] [--set key=value ...] [--out FILE]
-    mpirun -n 2 python scripts/step_cost.py CASE --t-end T ...
+    python scripts/tools/step_cost.py CASE --t-end T [--window W] [--set key=value ...] [--out FILE]
+    mpirun -n 2 python scripts/tools/step_cost.py CASE --t-end T ...
 
 Runs the case (in one process, or decomposed when launched by mpirun) from t = 0 to T and
 prints, for every window of W seconds of process time: the steps, the wall time per step,
@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph.__main__ import mpi_size  # noqa: E402
 from torchsph.config import load_case  # noqa: E402
 from torchsph.runner import make_simulation, run_steps  # noqa: E402

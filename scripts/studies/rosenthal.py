@@ -1,7 +1,7 @@
 """Rosenthal study (see torchsph/rosenthal.py): SPH T_L isotherm of a beam moving over a
 thick steel plate, against Rosenthal's point source and its Gaussian-spot superposition.
 
-    python scripts/rosenthal.py [--dx-mm 0.25] [--t-end 0.6] [--power 800] [--radius-mm 0.5]
+    python scripts/studies/rosenthal.py [--dx-mm 0.25] [--t-end 0.6] [--power 800] [--radius-mm 0.5]
                                 [--plate-mm 24 12 6] [--x-start-mm -8] [--compile]
 
 Rosenthal's solution is for a semi-infinite body: the plate must be several diffusion
@@ -14,7 +14,7 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph.rosenthal import run_study  # noqa: E402
 
 

@@ -1,6 +1,6 @@
 """Regenerate the README's verification table for the solver core.
 
-    python scripts/verify.py
+    python scripts/tools/verify.py
 
 Each row: the study, the measured error, the tolerance the tests assert, and the wall
 time. The same checks (with the same tolerances) run in ``tests/``.
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.config import load_case  # noqa: E402

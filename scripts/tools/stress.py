@@ -2,8 +2,8 @@
 the automatic limit, and the cube at multiples of its power, and report where each run
 blows up against the predicted limit, with the diagnosis the solver printed.
 
-    python scripts/stress.py            # both scenes (several minutes on 2 cores)
-    python scripts/stress.py --quick    # fewer factors
+    python scripts/tools/stress.py            # both scenes (several minutes on 2 cores)
+    python scripts/tools/stress.py --quick    # fewer factors
 """
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.config import load_case  # noqa: E402

@@ -2,7 +2,7 @@
 case folder (and the deposition cases' --preview), one after the other, one process, as a
 markdown table (the README's cost table).
 
-    python scripts/cost_table.py [CASE ...] [--threads 1]
+    python scripts/tools/cost_table.py [CASE ...] [--threads 1]
 
 Each row: particles, memory after set-up, steps to the end (from the time-step limits at
 t = 0 and, where melt will flow, the melt's acoustic limit at 10 % Mach), snapshots on disk,
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.config import load_case  # noqa: E402

@@ -4,7 +4,7 @@ viscous, body, surface tension, Marangoni, recoil) evaluated; prints the mass-we
 vertical acceleration over the melt particles near the wire above the substrate, per
 snapshot and averaged over the snapshots.
 
-    python scripts/wire_forces.py RUN_DIR [--t-min 0.06] [--r-max 1e-3] [--z-min 0.4e-3]
+    python scripts/studies/wire_forces.py RUN_DIR [--t-min 0.06] [--r-max 1e-3] [--z-min 0.4e-3]
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402

@@ -1,6 +1,6 @@
 """Strong scaling of the MPI slabs: the same case on 1 and on N ranks, side by side.
 
-    python scripts/mpi_scaling.py [CASE] [--ranks 2] [--steps 300 | --t-end T] [--preview]
+    python scripts/tools/mpi_scaling.py [CASE] [--ranks 2] [--steps 300 | --t-end T] [--preview]
                                   [--balance]
 
 Runs ``mpiexec -n 1`` and ``mpiexec -n N`` one after the other (OMP_NUM_THREADS=1 per rank,
@@ -22,7 +22,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def main():

@@ -1,7 +1,7 @@
-"""The deposition step against a reference commit (``python scripts/bench.py --deposition``).
+"""The deposition step against a reference commit (``python scripts/tools/bench.py --deposition``).
 
 Both codes are measured one after the other, 1 thread, each in its own process
-(``scripts/bench_deposition_driver.py``): the reference commit (default b14e316) is checked out into a
+(``scripts/tools/bench_deposition_driver.py``): the reference commit (default b14e316) is checked out into a
 temporary git worktree and removed afterwards. States:
 
 - **preview, t = 0.03 s**: ``cases/perpendicular_350W --preview`` run to t = 0.03 s by each
@@ -26,8 +26,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-DRIVER = ROOT / "scripts" / "bench_deposition_driver.py"
+ROOT = Path(__file__).resolve().parents[2]
+DRIVER = ROOT / "scripts" / "tools" / "bench_deposition_driver.py"
 CACHE = Path(os.environ.get("TORCHSPH_BENCH_CACHE", Path.home() / ".cache" / "torchsph-bench"))
 
 

@@ -1,7 +1,7 @@
 """Per-step profile of the solver: where one time step spends its time.
 
-    python scripts/profile_step.py [CASE_DIR] [--steps N] [--compile] [--set key=value ...]
-    python scripts/profile_step.py --restart RUN_DIR/checkpoint.pt [--steps N]
+    python scripts/tools/profile_step.py [CASE_DIR] [--steps N] [--compile] [--set key=value ...]
+    python scripts/tools/profile_step.py --restart RUN_DIR/checkpoint.pt [--steps N]
 
 With ``--restart`` the step is profiled in the state of a run's checkpoint (the case is the
 run's own ``config.json``), e.g. late in a deposition run, where the melt pool, the fed
@@ -21,14 +21,14 @@ from pathlib import Path
 
 from torch.profiler import ProfilerActivity, profile
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph.config import load_case  # noqa: E402
 from torchsph.runner import make_simulation, run_steps  # noqa: E402
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("case", nargs="?", default=str(Path(__file__).resolve().parents[1] / "cases/taylor_green_2d"))
+    ap.add_argument("case", nargs="?", default=str(Path(__file__).resolve().parents[2] / "cases/taylor_green_2d"))
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--compile", action="store_true")
     ap.add_argument("--set", dest="overrides", action="append", default=[])

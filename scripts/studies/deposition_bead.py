@@ -8,9 +8,9 @@ value pi d^2 V_wire / (4 V_sub) (2.26 mm^2 for the thesis's scene), and against 
 cross-section of the wire actually fed while that range passed under the wire (less than
 the nominal value by the time the feed waited on contact, ``scene.wire_stall``).
 
-    python scripts/deposition_bead.py cases/perpendicular_350W --t-end 0.5
-    python scripts/deposition_bead.py --read OUT_DIR      # analyse a finished run
-    python scripts/deposition_bead.py --read OUT_DIR --plot bead.png   # and draw each bin's history
+    python scripts/studies/deposition_bead.py cases/perpendicular_350W --t-end 0.5
+    python scripts/studies/deposition_bead.py --read OUT_DIR      # analyse a finished run
+    python scripts/studies/deposition_bead.py --read OUT_DIR --plot bead.png   # and draw each bin's history
 
 A bin counts as settled when its area changed by at most ``--tolerance`` over the last
 ``--lag-s`` seconds (melt running back along the bead keeps filling a bin for a while after
@@ -24,7 +24,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 from torchsph.post import bead_settling, fed_cross_section  # noqa: E402
 

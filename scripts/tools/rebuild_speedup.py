@@ -1,6 +1,6 @@
 """Side-by-side cost of the partial neighbour rebuild, from a run's checkpoint.
 
-    python scripts/rebuild_speedup.py RUN_DIR [--steps 200] [--threads 1]
+    python scripts/tools/rebuild_speedup.py RUN_DIR [--steps 200] [--threads 1]
 
 Restores ``RUN_DIR/checkpoint.pt`` (with the run's ``config.json``) twice and steps it
 ``--steps`` steps with ``numerics.partial_rebuild`` on and off, one after the other; prints
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.runner import run_steps, simulation_from_run  # noqa: E402
