@@ -95,9 +95,10 @@ class ActiveSet:
         self.work = dilate(state.x, self.active, self.search)
         self.n_refresh += 1
 
-    def stale(self, state, lit: torch.Tensor | None) -> bool:
-        """True when a frontier particle has become a seed (heat is near the edge)."""
-        return bool((self.frontier & self.seeds(state, lit)).any())
+    def stale(self, state, lit: torch.Tensor | None) -> torch.Tensor:
+        """True when a frontier particle has become a seed (heat is near the edge): a 0-d
+        device tensor (the step reads it with its other decisions)."""
+        return (self.frontier & self.seeds(state, lit)).any()
 
     def pad(self, n: int):
         """New particles (appended) start outside every set until the next refresh."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from . import rates
+from . import limits as step_limits, rates
 from .state import ParticleState, Phase
 from .thermal import stored_energy
 
@@ -87,3 +87,61 @@ def energy_balance(sim) -> dict:
     ref = max(sum(abs(v) for v in energy.values()), 1e-300)
     out["residual_rel"] = abs(out["residual_J"]) / ref
     return out
+
+
+def end_flags(sim) -> dict:
+    """The decisions the end of a step reads, as 0-d device tensors."""
+    f = {}
+    if sim.active_set is not None:  # heat reached the frontier band
+        f["stale"] = sim.active_set.stale(sim.state, rates.source_mask(sim))
+    if sim.fluid is None and sim.thermal is not None:
+        f["T_ok"] = torch.isfinite(sim.state.T).all()
+    return f
+
+
+def finish_step(sim, dt: float) -> dict:
+    """The end of a step: melting and freezing with the mushy drag, the ghost refresh, then
+    one read of everything the host needs (the measures, the next step's limits, whether a
+    phase changed, whether the active set is stale, whether T is finite). The drag is taken
+    first as if no phase changed; where one did (a few steps of a run), it is undone and the
+    phases change, the pairs are re-selected, the drag is taken again, and the end is read
+    again. Returns the read flags."""
+    pc = sim.phase_change
+    extra = {}
+    if pc is not None:
+        melt, freeze, counts = pc.decide(sim)
+        v0 = sim.state.v  # (the drag makes a new array)
+        pc.drag(sim, dt)
+        extra = {"melt": counts[0], "freeze": counts[1]}
+    sim.comm.end_step(sim)
+    f = step_limits.end_of_step(sim, **end_flags(sim), **extra)
+    if pc is not None:
+        n = [int(f["melt"]), int(f["freeze"])]
+        total = sim.comm.sum(n)  # every process re-selects together
+        if any(total):
+            sim.state.v = v0
+            pc.change(sim, melt, freeze, n[0], n[1], total)
+            pc.drag(sim, dt)
+            sim.comm.end_step(sim)
+            f = step_limits.end_of_step(sim, **end_flags(sim))
+    if "stale" in f and sim.comm.any(bool(f["stale"])):
+        sim.stale = True  # refresh the active set at the next rebuild point
+    return f
+
+
+def mid_step_read(sim) -> dict:
+    """After the drift: the feeder's contact questions (``feeder.probe``) and whether the
+    neighbour list must be rebuilt (``nl.known``), read at once."""
+    q = {}
+    probe = getattr(sim.feeder, "probe", None)
+    if probe is not None:
+        q.update(probe(sim))
+    d = sim.nl.displaced(sim.state.x, sim.moving_rows())
+    if d is not None:
+        q["displaced"] = d
+    if not q:
+        return {}
+    vals = dict(zip(q, torch.stack([v.reshape(()) for v in q.values()]).tolist()))
+    if "displaced" in vals:
+        sim.nl.known = (sim.state.x, bool(vals["displaced"]))
+    return vals

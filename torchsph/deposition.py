@@ -120,14 +120,27 @@ class WireFeeder:
         vw[2] = -speed
         sim.set_body_velocity(WIRE, vw)
 
-    def new_particles(self, sim, t: float) -> ParticleState | None:
+    def probe(self, sim) -> dict[str, torch.Tensor]:
+        """The contact check's first questions (is solid wire at the substrate's top, is melt
+        squeezed) as 0-d device tensors, which the step reads with its other decisions; the
+        next :meth:`new_particles` (at the same positions) uses the answers."""
+        s = sim.state
+        low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < 0.5 * self.dx)
+        dense = (s.phase == Phase.FLUID) & (s.rho > (1.0 + self.squeeze) * self.rho0) if self.stall else None
+        self.probed = (s.x, low, dense)
+        return {"wire_low": low.any()} | ({"melt_dense": dense.any()} if dense is not None else {})
+
+    probed = None  # (positions, masks) of the last probe
+
+    def new_particles(self, sim, t: float, answers: dict | None = None) -> ParticleState | None:
         """Called after the positions of the step from sim.t to t were updated: count the
-        distance the wire moved in it, handle contact, add the layers now due."""
+        distance the wire moved in it, handle contact, add the layers now due. ``answers``:
+        the read values of :meth:`probe` at these positions."""
         if self.started and not self.stalled:
             self.fed += self.speed * (t - sim.t)
         elif self.started:  # stalled (before the feed starts the wire waits anyway)
             self.stall_s += t - sim.t
-        blocked = self.check_contact(sim)
+        blocked = self.check_contact(sim, answers)
         if self.stall and blocked != self.stalled:  # stall on contact, go on once it has melted
             self.stalled = blocked
             self.n_stalls += int(blocked)
@@ -143,7 +156,7 @@ class WireFeeder:
         self.n_fed += due
         return self.layers(js, t)
 
-    def check_contact(self, sim) -> bool:
+    def check_contact(self, sim, answers: dict | None = None) -> bool:
         """The wire is rigid until it melts. Solid wire may dip into the melt pool below the
         substrate's top face; where it runs into
         solid substrate (:meth:`touches_solid_substrate`) it is handled by ``contact`` and
@@ -165,14 +178,18 @@ class WireFeeder:
           resolution, which the rigid feed would otherwise squeeze until the weakly
           compressible model breaks (it relaxes while the wire waits).
 
-        Returns whether the feed waits (the same on every process)."""
+        Returns whether the feed waits (the same on every process). ``answers``: the read
+        values of :meth:`probe` at these positions (else they are read here)."""
         s = sim.state
-        low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < 0.5 * self.dx)
-        dense = (s.phase == Phase.FLUID) & (s.rho > (1.0 + self.squeeze) * self.rho0) if self.stall else None
-        if dense is None:
-            hit, some_dense = bool(low.any()), False  # one sync per step; the rest only on contact
+        if answers is not None and self.probed is not None and self.probed[0] is s.x:
+            _, low, dense = self.probed  # read with the step's other decisions
+            hit, some_dense = bool(answers["wire_low"]), bool(answers.get("melt_dense", False))
         else:
-            hit, some_dense = torch.stack([low.any(), dense.any()]).tolist()
+            q = self.probe(sim)
+            vals = torch.stack(list(q.values())).tolist()  # one sync; the rest only on contact
+            hit, some_dense = bool(vals[0]), len(vals) > 1 and bool(vals[1])
+            _, low, dense = self.probed
+        self.probed = None
         if hit:
             low = self.touches_solid_substrate(s, low)
             hit = bool(low.any())

@@ -40,18 +40,21 @@ class StepInfo:
     amax: float
 
 
-def measure(sim) -> dict[str, float]:
-    """The largest speed and acceleration, the smallest density and the largest compression
-    |rho / rho0 - 1| of the fluid this process owns, reduced over processes (one read)."""
+MEASURES = ("vmax", "amax", "rho_min", "compression")
+
+
+def measure_tensor(sim) -> torch.Tensor:
+    """(4,) float64 device tensor: the largest speed and acceleration, the smallest density
+    and the largest compression |rho / rho0 - 1| of the fluid this process owns (not read)."""
     own = sim.comm.owned(sim)
-    names = ("vmax", "amax", "rho_min", "compression")
+    st = sim.state
     if sim.fluid is None:
-        rho = sim.state.rho if own is None else sim.state.rho[own]
-        vals = [0.0, 0.0, float(rho.min()) if rho.numel() else float("inf"), 0.0]
-        return dict(zip(names, sim.comm.reduce_measure(vals)))
+        rho = st.rho if own is None else torch.where(own, st.rho, torch.full_like(st.rho, math.inf))
+        z = torch.zeros((), dtype=torch.float64, device=rho.device)
+        r = rho.min().double() if rho.numel() else torch.full_like(z, math.inf)
+        return torch.stack([z, z, r, z])
     rows = sim.fluid.rows_f  # every fluid particle (and, decomposed, ghosts: masked)
     mine = None if own is None else own.index_select(0, rows)
-    st = sim.state
     v, a = st.v.index_select(0, rows), sim.dvdt.index_select(0, rows)
     rho = st.rho.index_select(0, rows)
     comp = (rho / sim.fluid.prm.rho0 - 1.0).abs()
@@ -62,22 +65,19 @@ def measure(sim) -> dict[str, float]:
         comp = torch.where(mine, comp, torch.zeros_like(comp))
     z = torch.zeros((1,), dtype=rho.dtype, device=rho.device)  # (a process may own no fluid)
     inf = torch.full((1,), float("inf"), dtype=rho.dtype, device=rho.device)
-    vals = torch.stack([torch.cat([v2, z]).max().sqrt(), torch.cat([a2, z]).max().sqrt(),
-                        torch.cat([rho, inf]).min(), torch.cat([comp, z]).max()]).tolist()
-    return dict(zip(names, sim.comm.reduce_measure(vals)))
+    return torch.stack([torch.cat([v2, z]).max().sqrt(), torch.cat([a2, z]).max().sqrt(),
+                        torch.cat([rho, inf]).min(), torch.cat([comp, z]).max()]).double()
 
 
-def limits(sim) -> dict[str, float]:
-    """Every time-step limit of SPEC §4 that applies to the scene (seconds)."""
-    m, h = sim.info, sim.h
+def measure(sim) -> dict[str, float]:
+    """:func:`measure_tensor`, read and reduced over processes (one read)."""
+    return dict(zip(MEASURES, sim.comm.reduce_measure(measure_tensor(sim).tolist())))
+
+
+def device_limits(sim) -> dict:
+    """The limits computed from the particles (0-d device tensors, or numbers): capillary,
+    thermal, evaporation, heating, and the composed terms'."""
     lim = {}
-    if sim.fluid is not None:
-        prm = sim.fluid.prm
-        lim["acoustic"] = sim.cfl * h / (prm.c0 + m["vmax"])
-        if prm.eta > 0:
-            lim["viscous"] = 0.125 * h * h * m["rho_min"] / prm.eta
-        if m["amax"] > 0 and math.isfinite(m["amax"]):
-            lim["force"] = 0.25 * math.sqrt(h / m["amax"])
     if sim.surface is not None:
         lim["capillary"] = sim.surface.limit(sim.state)
     if sim.thermal is not None:
@@ -87,11 +87,50 @@ def limits(sim) -> dict[str, float]:
             lim["heating"] = heating_limit(sim)
     for term in sim.terms:  # the composable terms' own limits
         lim.update(term.limits(sim))
-    dev = [k for k, v in lim.items() if isinstance(v, torch.Tensor)]
-    if dev:  # the limits computed on the device: one read
-        lim.update(zip(dev, torch.stack([lim[k].reshape(()) for k in dev]).tolist()))
+    return lim
+
+
+def finish_limits(sim, m: dict[str, float], dev: dict[str, float]) -> dict[str, float]:
+    """Every limit, from the measures ``m`` and the read ``dev`` values, over processes."""
+    h = sim.h
+    lim = {}
+    if sim.fluid is not None:
+        prm = sim.fluid.prm
+        lim["acoustic"] = sim.cfl * h / (prm.c0 + m["vmax"])
+        if prm.eta > 0:
+            lim["viscous"] = 0.125 * h * h * m["rho_min"] / prm.eta
+        if m["amax"] > 0 and math.isfinite(m["amax"]):
+            lim["force"] = 0.25 * math.sqrt(h / m["amax"])
+    lim.update(dev)
     lim = sim.comm.merge_limits({k: v for k, v in lim.items() if math.isfinite(v)})
     return lim or {"none": math.inf}
+
+
+def read_all(sim, dev: dict, *extra: torch.Tensor) -> tuple[dict, list[float]]:
+    """Read the device ``dev`` limits and the ``extra`` 0-d tensors in one go: (dev with
+    numbers, the extras' values)."""
+    keys = [k for k, v in dev.items() if isinstance(v, torch.Tensor)]
+    ts = [dev[k].reshape(()).double() for k in keys] + [e.reshape(()).double() for e in extra]
+    vals = torch.stack(ts).tolist() if ts else []
+    return {**dev, **dict(zip(keys, vals))}, vals[len(keys):]
+
+
+def limits(sim) -> dict[str, float]:
+    """Every time-step limit of SPEC §4 that applies to the scene (seconds)."""
+    dev, _ = read_all(sim, device_limits(sim))
+    return finish_limits(sim, sim.info, dev)
+
+
+def end_of_step(sim, **flags: torch.Tensor) -> dict[str, float]:
+    """The step's one read: the measures, every limit of the next step (kept in
+    ``sim.lim_cache``: the state does not change until then) and the ``flags`` (0-d
+    tensors: the decisions the host needs) together. Sets ``sim.info``; returns the flags'
+    values (process-local: the caller reduces what it must)."""
+    dev = device_limits(sim)
+    dev, vals = read_all(sim, dev, *measure_tensor(sim).unbind(), *flags.values())
+    sim.info = dict(zip(MEASURES, sim.comm.reduce_measure(vals[:4])))
+    sim.lim_cache = (sim.step, sim.state.n, finish_limits(sim, sim.info, dev))
+    return dict(zip(flags, vals[4:]))
 
 
 def heating_limit(sim):

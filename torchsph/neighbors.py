@@ -341,18 +341,29 @@ class VerletList:
         self.table = NeighbourTable.dense(*build_table(x, r, self.domain)) if work is None else \
             subset_table(x, work, r, self.domain)
 
-    def needs_rebuild(self, x: torch.Tensor, rows: torch.Tensor | None = None) -> bool:
-        """Whether some particle moved more than skin/2 since the last build; with ``rows``,
-        only those are checked (the caller knows the others move with one of them)."""
+    known = None  # (positions, whether they need a rebuild), read by the step with its other decisions
+
+    def displaced(self, x: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor | None:
+        """:meth:`needs_rebuild` as a 0-d device tensor (not read); None when the particle
+        set changed since the last build (a rebuild is due)."""
         if self.x_ref is None or self.x_ref.shape != x.shape:
-            return True
+            return None
         if rows is None:
             d = self.domain.minimum_image(x - self.x_ref)
         else:
             d = self.domain.minimum_image(x.index_select(0, rows) - self.x_ref.index_select(0, rows))
         if self.skin <= 0:  # no skin: rebuild whenever anything moved
-            return bool((d != 0).any())
-        return bool((d * d).sum(-1).max() > (0.5 * self.skin) ** 2)
+            return (d != 0).any()
+        return (d * d).sum(-1).max() > (0.5 * self.skin) ** 2
+
+    def needs_rebuild(self, x: torch.Tensor, rows: torch.Tensor | None = None) -> bool:
+        """Whether some particle moved more than skin/2 since the last build; with ``rows``,
+        only those are checked (the caller knows the others move with one of them). The
+        answer for these very positions, if the step has read it already (``known``)."""
+        if self.known is not None and self.known[0] is x:
+            return self.known[1]
+        d = self.displaced(x, rows)
+        return True if d is None else bool(d)
 
     def update(self, x: torch.Tensor, force: bool = False, subset=None, rigid=None, rows=None) -> bool:
         """Rebuild if needed; returns True when the pairs changed. ``subset`` (a callable

@@ -88,6 +88,7 @@ def rearm(sim, arrays: dict[str, torch.Tensor], table=None):
     put back; the fluid's pair geometry (what the next continuity sum reuses) is
     recomputed, the rates kept."""
     arrays = {RENAMED.get(k, k): v for k, v in arrays.items()}
+    sim.lim_cache = None  # the limits the last step read were of other particles
     held = particle_arrays(sim)
     set_particle_arrays(sim, arrays)
     owners = _owners(sim)

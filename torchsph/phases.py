@@ -26,12 +26,23 @@ class PhaseChange:
         C (1 - phi)^2 / (phi^3 + 1e-3), integrated exactly (u - u_s decays as exp(-rate dt)),
         so any C is stable. Carman-Kozeny rather than a viscosity ramp: the harmonic mean of
         (3.8) lets the low melt viscosity dominate a pair, so a viscosity ramp barely damps."""
-        T_S, T_L, C = self.T_S, self.T_L, self.C
+        melt, freeze, counts = self.decide(sim)
+        n_melt, n_freeze = counts.tolist()
+        self.change(sim, melt, freeze, n_melt, n_freeze, sim.comm.sum([n_melt, n_freeze]))
+        self.drag(sim, dt)
+
+    def decide(self, sim):
+        """(the particles that melt, those that freeze, their counts as a device tensor)."""
         s = sim.state
-        melt = (s.phase == Phase.SOLID) & (s.T > T_L)
-        freeze = (s.phase == Phase.FLUID) & (s.T < T_S)
-        n_melt, n_freeze = torch.stack([melt.sum(), freeze.sum()]).tolist()
-        g_melt, g_freeze = sim.comm.sum([n_melt, n_freeze])  # every process re-selects together
+        melt = (s.phase == Phase.SOLID) & (s.T > self.T_L)
+        freeze = (s.phase == Phase.FLUID) & (s.T < self.T_S)
+        return melt, freeze, torch.stack([melt.sum(), freeze.sum()])
+
+    def change(self, sim, melt, freeze, n_melt: int, n_freeze: int, total):
+        """Apply :meth:`decide`'s decision (``n_melt``, ``n_freeze``: this process's counts;
+        ``total``: the counts over every process, which all re-select together)."""
+        s = sim.state
+        g_melt, g_freeze = total
         if n_freeze:  # join the body it rests on and take that body's velocity
             rows = torch.nonzero(freeze).squeeze(1)
             b = resting_body(sim, rows)
@@ -53,6 +64,11 @@ class PhaseChange:
             sim.drhodt = torch.zeros_like(s.rho)
             if sim.fluid is not None:
                 sim.dvdt = sim.accelerations(s.v)
+
+    def drag(self, sim, dt: float):
+        """The mushy-zone drag of the step (see :meth:`update`)."""
+        T_S, T_L, C = self.T_S, self.T_L, self.C
+        s = sim.state
         if sim.fluid is None or C <= 0:
             return
         rows = sim.fluid_model.rows_f

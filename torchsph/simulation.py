@@ -185,7 +185,10 @@ class Simulation:
         return step_limits.limits(self)
 
     def choose_dt(self) -> tuple[float, str]:
-        lim = self.limits()
+        """The step's dt and its binding limit: from the limits the last step read at its
+        end (the state has not changed since), else read now."""
+        c = self.lim_cache
+        lim = c[2] if c is not None and c[:2] == (self.step, self.state.n) else self.limits()
         self.lim_cache = (self.step, self.state.n, lim)
         if self.dt_fixed is not None:
             return self.dt_fixed, "fixed"
@@ -241,8 +244,9 @@ class Simulation:
                 shift = self.surface.project_shift(shift, self.fluid.rows_f)
             x_new = x_new.index_add_(0, self.fluid.rows_f, shift)
         s.x = self.domain.wrap(x_new)
+        answers = bookkeeping.mid_step_read(self)  # the feeder's contact and the rebuild test, read at once
         if self.feeder is not None:  # new particles enter at t + dt
-            new = self.feeder.new_particles(self, self.t + dt)
+            new = self.feeder.new_particles(self, self.t + dt, answers)
             if new is not None and new.n:
                 new, perm = particles.add_particles(self, new)  # this process's share of them
                 if new.n:
@@ -299,13 +303,8 @@ class Simulation:
             s.T_peak = s.T_peak.index_copy(0, rows, torch.maximum(s.T_peak.index_select(0, rows), s.T.index_select(0, rows)))
         self.t += dt
         self.step += 1
-        if self.phase_change is not None:
-            self.phase_change.update(self, dt)
-        self.comm.end_step(self)
-        self.info = self.measure()
-        diagnosis.check_finite(self, v_tilde, dt, limit)
-        if self.active_set is not None and self.comm.any(self.active_set.stale(s, rates.source_mask(self))):
-            self.stale = True  # heat reached the frontier band: refresh at the next rebuild point
+        flags = bookkeeping.finish_step(self, dt)  # phases, ghosts, and the step's one read
+        diagnosis.check_finite(self, v_tilde, dt, limit, flags.get("T_ok"))
         self.plan.add(self)
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])
 
