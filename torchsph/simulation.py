@@ -168,7 +168,7 @@ class Simulation:
             self.thermal.owned = self.comm.owned(self)
             self.thermal.select_pairs(self.state, self.nl.table, active=self.active_mask,
                                       work=self.active_set.work if self.active_set is not None else None,
-                                      x_ref=self.nl.x_ref, new_table=new_table)
+                                      x_ref=self.nl.x_ref, new_table=new_table, reach=0.5 * self.nl.skin)
         for term in self.terms:
             term.select(self)
         self.plan.select(self)

@@ -16,7 +16,7 @@ import torch
 
 from .fluid import embed, gather_nb, pair_geometry
 from .free_surface import ColourGradient, colour_gradient_pairs  # noqa: F401 (re-exported)
-from .beam import beam_power, in_beam
+from .beam import beam_frame, beam_power, in_beam
 from .heat_operator import ConductionOperator
 from .kernels import Kernel
 from .neighbors import Domain
@@ -235,11 +235,12 @@ class Conduction:
 
     def select_pairs(self, state: ParticleState, table,
                      active: torch.Tensor | None = None, work: torch.Tensor | None = None,
-                     x_ref: torch.Tensor | None = None, new_table: bool = True):
+                     x_ref: torch.Tensor | None = None, new_table: bool = True, reach: float | None = None):
         """Rows: every particle but the walls, or with an active set only its active
         particles (and the walls of its work set). ``x_ref``: the positions at the last
         neighbour build (default: now); ``new_table``: the table was just built (else the
-        phases changed, or the particles were swapped in with their arrays)."""
+        phases changed, or the particles were swapped in with their arrays); ``reach``: how
+        far a particle may move from ``x_ref`` before the next build (None: unknown)."""
         wall = state.phase == Phase.WALL
         self.wall_mask = wall
         # Laplacian normalisation and surface area per particle (and the surface normal):
@@ -282,6 +283,7 @@ class Conduction:
             nbw, mw = table.gather(self.rows_w, within=True)
             self.nb_w = nbw
             self.mask_w = (mw & ~gather_nb(wall, nbw)).to(state.dtype)
+        self.beam_rows = self.beam_candidates(x_ref, reach, comm)
         if self.losses.active:  # the rows whose area the next evaluation computes
             sub, _ = self._rows_to_compute("area")
             self.colour.want("area", self.rows if sub is None else self.rows.index_select(0, sub), table)
@@ -424,14 +426,44 @@ class Conduction:
         (with an active set, the beams' footprints are in it: lit particles seed it)."""
         return embed(rows, self.beam_power_rows(state, t, rows), state.n)
 
+    beam_rows = None  # per beam: the positions in ``rows`` that it can reach until the next build
+
+    def beam_candidates(self, x_ref: torch.Tensor, reach: float | None, comm) -> list | None:
+        """For each beam whose aim does not move: the positions in ``rows`` of the particles
+        within its traced cylinder (3 r) widened by ``reach``, at ``x_ref`` (the particles
+        move less than ``reach`` from there until the next neighbour build, so no other
+        can enter it); None for a moving beam (every row is traced)."""
+        if not self.beams or reach is None or (comm is not None and comm.size > 1):
+            return None
+        x = x_ref.index_select(0, self.rows)
+        out = []
+        for b in self.beams:
+            if any(b.velocity):
+                out.append(None)
+                continue
+            _, a, c = beam_frame(x, b, 0.0)
+            out.append(torch.nonzero((a * a + c * c).sqrt() < 3.0 * b.radius + reach * (1 + 1e-9) + 1e-12).squeeze(1))
+        return out
+
     def beam_power_rows(self, state: ParticleState, t: float, rows: torch.Tensor) -> torch.Tensor:
-        """:meth:`beam_power` on ``rows`` only."""
+        """:meth:`beam_power` on ``rows`` only (each beam traced on the rows it can reach)."""
         comm = getattr(self, "comm", None)
         if comm is not None and comm.size > 1:
             return beam_power_decomposed(self, state, t, rows, comm)
         x = state.x.index_select(0, rows)
-        material = torch.ones(rows.numel(), dtype=torch.bool, device=x.device)
-        return sum(beam_power(x, material, b, t, self.dx) for b in self.beams)
+        subs = self.beam_rows if self.beam_rows is not None and rows is self.rows else [None] * len(self.beams)
+        total = 0
+        for b, sub in zip(self.beams, subs):
+            if sub is None:
+                total = total + beam_power(x, torch.ones(rows.numel(), dtype=torch.bool, device=x.device), b, t, self.dx)
+                continue
+            if sub.numel() == 0:  # nothing within its reach
+                total = total + torch.zeros(rows.numel(), dtype=x.dtype, device=x.device)
+                continue
+            xs = x.index_select(0, sub)
+            p = beam_power(xs, torch.ones(sub.numel(), dtype=torch.bool, device=x.device), b, t, self.dx)
+            total = total + torch.zeros(rows.numel(), dtype=x.dtype, device=x.device).index_copy_(0, sub, p)
+        return total
 
     def lit_mask(self, state: ParticleState, t: float) -> torch.Tensor | None:
         """Particles any beam lights at time t (all non-wall particles considered)."""
