@@ -123,3 +123,31 @@ def test_restart_between_a_freeze_and_the_next_build_is_bit_for_bit(tmp_path):
     run_steps(other, steps=K)
     for name in ("x", "v", "rho", "T", "phase", "body"):
         assert torch.equal(getattr(sim.state, name), getattr(other.state, name)), name
+
+
+def test_a_checkpoint_without_the_operators_arrays_gets_the_matrix_back_at_the_next_build(tmp_path):
+    """A checkpoint of a version that did not carry which particles are steady (nor the
+    matrix's positions): the restore guesses them (the solid that has not moved since the
+    last build: none on a moving substrate), and the next neighbour build makes the matrix
+    anew, which then holds most pairs again (before the fix it stayed empty while the
+    conducting rows stayed the same: every pair evaluated every step, 9x slower)."""
+    from torchsph import checkpoint as ckpt
+    from torchsph.runner import resume
+
+    cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3")
+    _, sim = make_simulation(cfg)
+    run_steps(sim, steps=60)
+    d = ckpt.snapshot(sim)
+    for k in ("steady", "x_op"):
+        d["thermal"][k] = None
+    d["config_hash"] = ckpt.config_hash(cfg)
+    path = tmp_path / "old.pt"
+    ckpt.write(d, path)
+    _, other = make_simulation(cfg)
+    resume(other, path, cfg)
+    b = other.nl.n_builds
+    while other.nl.n_builds == b:
+        run_steps(other, steps=1)
+    run_steps(other, steps=1)
+    op = other.thermal.op
+    assert op.n_static > 0.8 * op.pairs, (op.n_static, op.pairs)

@@ -260,12 +260,15 @@ class Conduction:
         comm = getattr(self, "comm", None)
         keep = (op is not None and self.steady is not None and self.steady.shape[0] == state.n
                 and self.x_op is not None and self.x_op.shape[0] == state.n and op.same_rows(self.rows, state.n)
-                and not (comm is not None and comm.size > 1))
+                and not (comm is not None and comm.size > 1) and not self.provisional)
         if new_table and not keep:  # G anew at this neighbour build's positions
-            self.steady, self.x_op = solid, x_ref
+            self.steady, self.x_op, self.provisional = solid, x_ref, False
         elif (self.steady is None or self.steady.shape[0] != state.n or self.x_op is None
               or self.x_op.shape[0] != state.n):
-            self.steady, self.x_op = solid & (state.x == x_ref).all(1), x_ref  # (arrays not carried)
+            # arrays not carried (a checkpoint of an older version): the solid that has not
+            # moved since the last build, until G is made anew at the next build
+            self.steady, self.x_op = solid & (state.x == x_ref).all(1), x_ref
+            self.provisional = True
         else:  # a phase change, or G kept: melt leaves it, what froze joins only when G is made anew
             self.steady = self.steady & solid
         if not keep:
@@ -427,6 +430,7 @@ class Conduction:
         return embed(rows, self.beam_power_rows(state, t, rows), state.n)
 
     beam_rows = None  # per beam: the positions in ``rows`` that it can reach until the next build
+    provisional = False  # steady set guessed (arrays not carried): G is made anew at the next build
 
     def beam_candidates(self, x_ref: torch.Tensor, reach: float | None, comm) -> list | None:
         """For each beam whose aim does not move: the positions in ``rows`` of the particles

@@ -92,6 +92,8 @@ def main():
     t0 = time.perf_counter()
     if a.what == "preview":
         _, sim = simulation_from_run(a.checkpoint)
+        # a neighbour build now, as after a restart from another version's checkpoint
+        (getattr(sim, "refresh_pairs", None) or getattr(sim, "_refresh_pairs"))(force=True)
     else:
         _, cfg = load_case(a.tree / "cases" / "perpendicular_350W", [])
         _, sim = make_simulation(cfg)
