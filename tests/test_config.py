@@ -141,3 +141,28 @@ def test_malformed_case_one_line_error(name, tmp_path):
 
 def test_at_least_ten_distinct_malformed_cases():
     assert len(ALL_BAD) >= 10
+
+
+def test_the_parameter_classes_are_filled_from_the_schema():
+    """Each case key names the parameter it sets (Key.field); every field of the physics'
+    parameter classes is set by one key (or by the named extras, or keeps a default that no
+    case sets), and a case's values arrive unchanged."""
+    from dataclasses import fields
+
+    from torchsph.config import FLUID, SURFACE, THERMAL
+    from torchsph.fluid import FluidParams
+    from torchsph.schema import params
+    from torchsph.surface import SurfaceParams
+    from torchsph.thermal import SurfaceLosses, ThermalParams
+
+    fixed = {FluidParams: {"density_diffusion", "shifting"}, SurfaceLosses: {"sticking"}}
+    for cls, schema in ((FluidParams, FLUID), (ThermalParams, THERMAL), (SurfaceLosses, THERMAL),
+                        (SurfaceParams, SURFACE)):
+        named = {k.field for k in schema.values() if k.field}
+        assert {f.name for f in fields(cls)} <= named | fixed.get(cls, set()), cls
+    _, cfg = load_case(CASES / "thermocapillary_layer_2d")
+    fp = params(FluidParams, cfg["fluid"], FLUID, density_diffusion=0.0, shifting=0.0)
+    assert fp.rho0 == cfg["fluid"]["rho0_kg_m3"] and fp.eta == cfg["fluid"]["viscosity_Pa_s"]
+    assert fp.gravity == tuple(cfg["fluid"]["gravity_m_s2"])
+    sp = params(SurfaceParams, cfg["surface"], SURFACE)
+    assert sp.dtension_dT == cfg["surface"]["dtension_dT_N_mK"] and sp.threshold == cfg["surface"]["threshold"]

@@ -118,6 +118,38 @@ def beam_power(x: torch.Tensor, material: torch.Tensor, beam: Beam, t: float, dx
         -2.0 * (ac * ac + bc * bc) / beam.radius**2)
     return torch.where(lit, q * dx * dx, torch.zeros_like(q))
 
+def reachable(beams, x: torch.Tensor, reach: float, cutoff: float = 3.0) -> list:
+    """For each beam whose aim does not move: the rows of ``x`` within its traced cylinder
+    (``cutoff`` r) widened by ``reach``; particles that move less than ``reach`` from ``x``
+    cannot enter it from elsewhere. None for a moving beam (every row is traced)."""
+    out = []
+    for b in beams:
+        if any(b.velocity):
+            out.append(None)
+            continue
+        _, a, c = beam_frame(x, b, 0.0)
+        out.append(torch.nonzero((a * a + c * c).sqrt() < cutoff * b.radius + reach * (1 + 1e-9) + 1e-12).squeeze(1))
+    return out
+
+
+def beams_power(beams, x: torch.Tensor, t: float, dx: float, subsets: list | None = None) -> torch.Tensor:
+    """Power (W) each row of ``x`` absorbs from all ``beams`` (all rows material); each beam
+    traced only on its rows of ``subsets`` (:func:`reachable`; None: on all)."""
+    total = 0
+    for k, b in enumerate(beams):
+        sub = None if subsets is None else subsets[k]
+        if sub is None:
+            total = total + beam_power(x, torch.ones(x.shape[0], dtype=torch.bool, device=x.device), b, t, dx)
+            continue
+        p = torch.zeros(x.shape[0], dtype=x.dtype, device=x.device)
+        if sub.numel():  # (nothing within its reach: none)
+            xs = x.index_select(0, sub)
+            p = p.index_copy_(0, sub, beam_power(xs, torch.ones(sub.numel(), dtype=torch.bool, device=x.device),
+                                                 b, t, dx))
+        total = total + p
+    return total
+
+
 def gaussian_fraction_in_strip(width: float, radius: float) -> float:
     """Fraction of a Gaussian beam (1/e^2 radius r) inside a strip |a| < width/2: the
     projection of a long cylinder of diameter ``width`` seen side-on."""

@@ -99,22 +99,45 @@ def end_flags(sim) -> dict:
     return f
 
 
-def finish_step(sim, dt: float) -> dict:
+class EndTemperatures:
+    """The temperatures of a step's end on ``rows`` (an :class:`~torchsph.thermal.Inversion`)
+    and the peak temperatures before them: put in unchecked, put again fixed if the end of
+    the step reads that some did not converge."""
+
+    def __init__(self, s, rows, inv):
+        self.rows, self.inv, self.T_peak = rows, inv, s.T_peak
+        self.put(s, inv.T)
+
+    def put(self, s, T):
+        s.T = s.T.index_copy(0, self.rows, T)
+        s.T_peak = self.T_peak.index_copy(0, self.rows, torch.maximum(self.T_peak.index_select(0, self.rows), T))
+
+
+def finish_step(sim, dt: float, ending: EndTemperatures | None = None) -> dict:
     """The end of a step: melting and freezing with the mushy drag, the ghost refresh, then
     one read of everything the host needs (the measures, the next step's limits, whether a
-    phase changed, whether the active set is stale, whether T is finite). The drag is taken
-    first as if no phase changed; where one did (a few steps of a run), it is undone and the
-    phases change, the pairs are re-selected, the drag is taken again, and the end is read
-    again. Returns the read flags."""
+    phase changed, whether the active set is stale, whether T is finite, whether the end's
+    temperatures converged). The drag is taken first as if no phase changed and the
+    temperatures were right; where not (a few steps of a run), it is undone, the
+    temperatures are fixed or the phases change (the pairs re-selected), the drag is taken
+    again, and the end is read again. Returns the read flags."""
     pc = sim.phase_change
-    extra = {}
-    if pc is not None:
-        melt, freeze, counts = pc.decide(sim)
-        v0 = sim.state.v  # (the drag makes a new array)
-        pc.drag(sim, dt)
-        extra = {"melt": counts[0], "freeze": counts[1]}
-    sim.comm.end_step(sim)
-    f = step_limits.end_of_step(sim, **end_flags(sim), **extra)
+    v0 = sim.state.v  # (the drag makes a new array)
+    check = ending is not None and ending.inv.bad is not None
+    while True:
+        extra = {"T_bad": ending.inv.bad.any()} if check else {}
+        if pc is not None:
+            melt, freeze, counts = pc.decide(sim)
+            pc.drag(sim, dt)
+            extra |= {"melt": counts[0], "freeze": counts[1]}
+        sim.comm.end_step(sim)
+        f = step_limits.end_of_step(sim, **end_flags(sim), **extra)
+        if check and sim.comm.any(bool(f["T_bad"])):  # every process goes round again together
+            sim.state.v = v0
+            ending.put(sim.state, ending.inv.fixed())
+            check = False
+            continue
+        break
     if pc is not None:
         n = [int(f["melt"]), int(f["freeze"])]
         total = sim.comm.sum(n)  # every process re-selects together
@@ -129,10 +152,14 @@ def finish_step(sim, dt: float) -> dict:
     return f
 
 
-def mid_step_read(sim) -> dict:
-    """After the drift: the feeder's contact questions (``feeder.probe``) and whether the
-    neighbour list must be rebuilt (``nl.known``), read at once."""
+def mid_step_read(sim, temperatures=None) -> dict:
+    """After the drift: the feeder's contact questions (``feeder.probe``), whether the
+    neighbour list must be rebuilt (``nl.known``) and whether the extrapolated temperatures
+    (``temperatures``: rows and an :class:`~torchsph.thermal.Inversion`, put in unchecked;
+    nothing has read them since) converged, read at once; those that did not are fixed."""
     q = {}
+    if temperatures is not None and temperatures[1].bad is not None:
+        q["T_bad"] = temperatures[1].bad.any()
     probe = getattr(sim.feeder, "probe", None)
     if probe is not None:
         q.update(probe(sim))
@@ -144,4 +171,7 @@ def mid_step_read(sim) -> dict:
     vals = dict(zip(q, torch.stack([v.reshape(()) for v in q.values()]).tolist()))
     if "displaced" in vals:
         sim.nl.known = (sim.state.x, bool(vals["displaced"]))
+    if vals.get("T_bad"):
+        rows, inv = temperatures
+        sim.state.T = sim.state.T.index_copy(0, rows, inv.fixed())
     return vals

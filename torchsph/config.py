@@ -88,14 +88,14 @@ def validate_section(name: str, raw: dict, schema: dict[str, Key], dim: int | No
 
 # --- the common sections ------------------------------------------------------
 FLUID = {
-    "rho0_kg_m3": Key("float", gt=0, doc="reference density"),
+    "rho0_kg_m3": Key("float", gt=0, doc="reference density", field="rho0"),
     "c0_m_s": Key("float", default=None, gt=0,
-                  doc="artificial speed of sound (Mach <= 0.1 of the flow); needed with fluid"),
-    "viscosity_Pa_s": Key("float", default=None, ge=0, doc="dynamic viscosity; needed with fluid"),
-    "gravity_m_s2": Key("vec", default=None, doc="gravity vector"),
-    "body_force_m_s2": Key("vec", default=None, doc="extra body acceleration, e.g. a channel drive"),
-    "gamma": Key("float", default=7.0, gt=0, doc="Tait exponent"),
-    "background_pressure_Pa": Key("float", default=0.0, ge=0, doc="added to the Tait pressure"),
+                  doc="artificial speed of sound (Mach <= 0.1 of the flow); needed with fluid", field="c0"),
+    "viscosity_Pa_s": Key("float", default=None, ge=0, doc="dynamic viscosity; needed with fluid", field="eta"),
+    "gravity_m_s2": Key("vec", default=None, doc="gravity vector", field="gravity"),
+    "body_force_m_s2": Key("vec", default=None, doc="extra body acceleration, e.g. a channel drive", field="body_force"),
+    "gamma": Key("float", default=7.0, gt=0, doc="Tait exponent", field="gamma"),
+    "background_pressure_Pa": Key("float", default=0.0, ge=0, doc="added to the Tait pressure", field="background_pressure"),
     "temperature_K": Key("float", default=300.0, gt=0, doc="initial temperature"),
 }
 
@@ -139,23 +139,23 @@ RUN = {
 }
 
 THERMAL = {
-    "conductivity_W_mK": Key("float", gt=0, doc="thermal conductivity"),
-    "specific_heat_J_kgK": Key("float", gt=0, doc="specific heat c_p"),
-    "latent_heat_J_kg": Key("float", default=0.0, ge=0, doc="latent heat of melting h_f"),
-    "solidus_K": Key("float", default=None, gt=0, doc="solidus T_S (with latent heat)"),
-    "liquidus_K": Key("float", default=None, gt=0, doc="liquidus T_L (with latent heat)"),
+    "conductivity_W_mK": Key("float", gt=0, doc="thermal conductivity", field="conductivity"),
+    "specific_heat_J_kgK": Key("float", gt=0, doc="specific heat c_p", field="specific_heat"),
+    "latent_heat_J_kg": Key("float", default=0.0, ge=0, doc="latent heat of melting h_f", field="latent_heat"),
+    "solidus_K": Key("float", default=None, gt=0, doc="solidus T_S (with latent heat)", field="solidus"),
+    "liquidus_K": Key("float", default=None, gt=0, doc="liquidus T_L (with latent heat)", field="liquidus"),
     "phase_change": Key("bool", default=False,
                         doc="solid particles melt into the fluid above T_L, melt solidifies below T_S"),
     "mushy_drag_1_s": Key("float", default=1.0e4, ge=0,
                           doc="Carman-Kozeny drag C (1 - phi)^2 / (phi^3 + 1e-3) in the mushy zone, 1/s"),
-    "ambient_K": Key("float", default=300.0, gt=0, doc="ambient temperature T0 of the surface losses"),
-    "emissivity": Key("float", default=0.0, ge=0, le=1, doc="radiation sigma eps (T^4 - T0^4); 0 = off"),
-    "convection_W_m2K": Key("float", default=0.0, ge=0, doc="convection q_h (T - T0); 0 = off (vacuum)"),
-    "evaporation": Key("bool", default=False, doc="evaporation loss m_v [h_v + h(T)] (2.10)"),
-    "boiling_point_K": Key("float", default=3090.0, gt=0, doc="T_v of the vapour pressure (2.6)"),
-    "evaporation_heat_J_kg": Key("float", default=6.1e6, gt=0, doc="latent heat of evaporation h_v"),
-    "molar_mass_kg_mol": Key("float", default=0.0558, gt=0, doc="molar mass M"),
-    "ambient_pressure_Pa": Key("float", default=101325.0, gt=0, doc="p_a in C_p = 0.54 p_a"),
+    "ambient_K": Key("float", default=300.0, gt=0, doc="ambient temperature T0 of the surface losses", field="ambient"),
+    "emissivity": Key("float", default=0.0, ge=0, le=1, doc="radiation sigma eps (T^4 - T0^4); 0 = off", field="emissivity"),
+    "convection_W_m2K": Key("float", default=0.0, ge=0, doc="convection q_h (T - T0); 0 = off (vacuum)", field="convection"),
+    "evaporation": Key("bool", default=False, doc="evaporation loss m_v [h_v + h(T)] (2.10)", field="evaporation"),
+    "boiling_point_K": Key("float", default=3090.0, gt=0, doc="T_v of the vapour pressure (2.6)", field="boiling_point"),
+    "evaporation_heat_J_kg": Key("float", default=6.1e6, gt=0, doc="latent heat of evaporation h_v", field="evaporation_heat"),
+    "molar_mass_kg_mol": Key("float", default=0.0558, gt=0, doc="molar mass M", field="molar_mass"),
+    "ambient_pressure_Pa": Key("float", default=101325.0, gt=0, doc="p_a in C_p = 0.54 p_a", field="ambient_pressure"),
 }
 
 BEAM = {
@@ -168,16 +168,16 @@ BEAM = {
 }
 
 SURFACE = {
-    "tension_N_m": Key("float", default=0.0, ge=0, doc="surface tension alpha0 at reference_temperature_K"),
-    "dtension_dT_N_mK": Key("float", default=0.0, doc="d alpha / dT (negative for steel)"),
-    "reference_temperature_K": Key("float", default=300.0, gt=0, doc="T0 of alpha(T) = alpha0 + alpha' (T - T0)"),
-    "marangoni": Key("bool", default=True, doc="the tangential (Marangoni) force (with dtension_dT_N_mK != 0)"),
-    "recoil": Key("bool", default=False, doc="recoil pressure p_v(T) (2.6); vapour law from [thermal]"),
+    "tension_N_m": Key("float", default=0.0, ge=0, doc="surface tension alpha0 at reference_temperature_K", field="tension"),
+    "dtension_dT_N_mK": Key("float", default=0.0, doc="d alpha / dT (negative for steel)", field="dtension_dT"),
+    "reference_temperature_K": Key("float", default=300.0, gt=0, doc="T0 of alpha(T) = alpha0 + alpha' (T - T0)", field="reference_temperature"),
+    "marangoni": Key("bool", default=True, doc="the tangential (Marangoni) force (with dtension_dT_N_mK != 0)", field="marangoni"),
+    "recoil": Key("bool", default=False, doc="recoil pressure p_v(T) (2.6); vapour law from [thermal]", field="recoil"),
     "threshold": Key("float", default=0.05, gt=0, lt=1,
-                     doc="|grad c| h above which a particle is on the free surface"),
+                     doc="|grad c| h above which a particle is on the free surface", field="threshold"),
     "zero_net_force": Key("bool", default=False,
                           doc="remove the discrete surface forces' resultant (a free body of liquid "
-                              "only, e.g. a drop: on a closed surface the continuum forces have none)"),
+                              "only, e.g. a drop: on a closed surface the continuum forces have none)", field="zero_net_force"),
 }
 
 CORE = ("scene", "fluid", "thermal", "beam", "surface", "numerics", "run", "preview")

@@ -20,6 +20,8 @@ from .active import ActiveSet
 from .simulation import Simulation
 from .surface import SurfaceForces, SurfaceParams
 from .progress import Progress, projection_lines
+from .config import FLUID, SURFACE, THERMAL
+from .schema import params
 from .terms import TermContext, available as available_terms
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -49,37 +51,24 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
     fluid = thermal = None
     phase_change = "thermal" in cfg and cfg["thermal"]["phase_change"]
     if SCENES[cfg["scene"]["type"]].has_fluid or phase_change:
-        prm = FluidParams(rho0=fl["rho0_kg_m3"], c0=fl["c0_m_s"], eta=fl["viscosity_Pa_s"],
-                          gravity=tuple(fl["gravity_m_s2"]), body_force=tuple(fl["body_force_m_s2"]),
-                          gamma=fl["gamma"], density_diffusion=nm["density_diffusion"],
-                          background_pressure=fl["background_pressure_Pa"], shifting=nm["shifting"])
+        prm = params(FluidParams, fl, FLUID, density_diffusion=nm["density_diffusion"], shifting=nm["shifting"])
         fluid = WeaklyCompressibleFluid(prm, kernel, h, scene.domain, compile=compile)
     # the free-surface stage: one colour gradient per step for the surface forces and losses
     colour = ColourGradient(kernel, h, scene.domain, cfg["surface"]["threshold"] if "surface" in cfg else 0.05,
                             compile=compile)
     if "thermal" in cfg:
         th = cfg["thermal"]
-        tp = ThermalParams(conductivity=th["conductivity_W_mK"], specific_heat=th["specific_heat_J_kgK"],
-                           latent_heat=th["latent_heat_J_kg"], solidus=th["solidus_K"] or 0.0,
-                           liquidus=th["liquidus_K"] or 0.0)
+        tp = params(ThermalParams, th, THERMAL)
         k = torch.full((scene.state.n,), tp.conductivity, dtype=scene.state.dtype,
                        device=scene.state.device)
         beams = [Beam(b["power_W"], b["efficiency"], b["radius_m"], tuple(b["direction"]),
                       tuple(b["aim_m"]), tuple(b["velocity_m_s"])) for b in case_beams(cfg)]
-        losses = SurfaceLosses(ambient=th["ambient_K"], emissivity=th["emissivity"],
-                               convection=th["convection_W_m2K"], evaporation=th["evaporation"],
-                               boiling_point=th["boiling_point_K"],
-                               evaporation_heat=th["evaporation_heat_J_kg"],
-                               molar_mass=th["molar_mass_kg_mol"], ambient_pressure=th["ambient_pressure_Pa"])
+        losses = params(SurfaceLosses, th, THERMAL)
         thermal = Conduction(tp, kernel, h, scene.domain, k, compile=compile, beams=beams, dx=scene.dx,
                              losses=losses, h_over_dx=nm["h_over_dx"], colour=colour)
     surface = None
     if "surface" in cfg and fluid is not None:
-        su = cfg["surface"]
-        sp = SurfaceParams(tension=su["tension_N_m"], dtension_dT=su["dtension_dT_N_mK"],
-                           reference_temperature=su["reference_temperature_K"],
-                           marangoni=su["marangoni"], recoil=su["recoil"], threshold=su["threshold"],
-                           zero_net_force=su["zero_net_force"])
+        sp = params(SurfaceParams, cfg["surface"], SURFACE)
         surface = SurfaceForces(sp, kernel, h, scene.domain, nm["h_over_dx"],
                                 vapour_pressure=losses.vapour_pressure if thermal is not None else None,
                                 compile=compile, colour=colour)

@@ -3,7 +3,7 @@ malformed case raises. The lowest layer of the case handling: the scenes declare
 with it, :mod:`torchsph.config` validates against them."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 
@@ -24,6 +24,7 @@ class Key:
     lt: float | None = None
     choices: tuple | None = None
     doc: str = ""
+    field: str | None = None  # the parameter it sets in the physics' parameter class (None: none)
 
     def allowed(self) -> str:
         if self.choices is not None:
@@ -40,3 +41,16 @@ class Key:
         if self.le is not None:
             bounds.append(f"<= {self.le:g}")
         return parts + (" " + " and ".join(bounds) if bounds else "")
+
+
+def params(cls, section: dict, schema: dict[str, Key], **extra):
+    """An instance of the parameter dataclass ``cls`` from a validated case section: each key
+    whose ``field`` is one of ``cls``'s fields sets it (lists become tuples; a None value
+    leaves the class's default), then ``extra`` (values from other sections)."""
+    names = {f.name for f in fields(cls)}
+    kw = {}
+    for k, key in schema.items():
+        if key.field in names and section.get(k) is not None:
+            v = section[k]
+            kw[key.field] = tuple(v) if isinstance(v, list) else v
+    return cls(**kw, **extra)

@@ -232,7 +232,8 @@ class Simulation:
             def whole_H_half():
                 return th.to_enthalpy(T0).index_copy_(0, rows0, H_half_r)
             # extrapolated for the evaluation at the end of the step; walls keep theirs
-            s.T = s.T.index_copy(0, rows0, th.to_temperature(H_r + dt * a_r, T0.index_select(0, rows0)))
+            inv = th.to_temperature_unchecked(H_r + dt * a_r, T0.index_select(0, rows0))  # checked after the drift
+            s.T = s.T.index_copy(0, rows0, inv.T)
         shift = None
         if self.fluid is not None:
             self.drhodt, shift = self.fluid.continuity(  # at x_n, with u_{n+1/2}
@@ -244,7 +245,7 @@ class Simulation:
                 shift = self.surface.project_shift(shift, self.fluid.rows_f)
             x_new = x_new.index_add_(0, self.fluid.rows_f, shift)
         s.x = self.domain.wrap(x_new)
-        answers = bookkeeping.mid_step_read(self)  # the feeder's contact and the rebuild test, read at once
+        answers = bookkeeping.mid_step_read(self, (rows0, inv) if self.thermal is not None else None)  # one read
         if self.feeder is not None:  # new particles enter at t + dt
             new = self.feeder.new_particles(self, self.t + dt, answers)
             if new is not None and new.n:
@@ -298,12 +299,12 @@ class Simulation:
                 Hh = H_half_r
             else:
                 Hh = (whole_H_half() if H_half is None else H_half).index_select(0, rows)
-            s.T = s.T.index_copy(0, rows, th.to_temperature(  # 3b
-                Hh + 0.5 * dt * self.dTdt.index_select(0, rows), s.T.index_select(0, rows)))
-            s.T_peak = s.T_peak.index_copy(0, rows, torch.maximum(s.T_peak.index_select(0, rows), s.T.index_select(0, rows)))
+            inv = th.to_temperature_unchecked(  # 3b (its convergence read at the step's end)
+                Hh + 0.5 * dt * self.dTdt.index_select(0, rows), s.T.index_select(0, rows))
+            ending = bookkeeping.EndTemperatures(s, rows, inv)
         self.t += dt
         self.step += 1
-        flags = bookkeeping.finish_step(self, dt)  # phases, ghosts, and the step's one read
+        flags = bookkeeping.finish_step(self, dt, ending if self.thermal is not None else None)
         diagnosis.check_finite(self, v_tilde, dt, limit, flags.get("T_ok"))
         self.plan.add(self)
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])

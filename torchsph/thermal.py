@@ -16,7 +16,7 @@ import torch
 
 from .fluid import embed, gather_nb, pair_geometry
 from .free_surface import ColourGradient, colour_gradient_pairs  # noqa: F401 (re-exported)
-from .beam import beam_frame, beam_power, in_beam
+from .beam import beam_power, beams_power, in_beam, reachable
 from .heat_operator import ConductionOperator
 from .kernels import Kernel
 from .neighbors import Domain
@@ -65,14 +65,10 @@ def temperature_from_enthalpy(H: torch.Tensor, prm: ThermalParams, T_ref: float,
     if prm.latent_heat <= 0.0:
         return T_ref + H / cp
     if guess is not None and H.numel():
-        T = guess
-        for _ in range(3):
-            T = T - (enthalpy(T, prm, T_ref) - H) / effective_heat_capacity(T, prm)
-        bad = ~((enthalpy(T, prm, T_ref) - H).abs() <= 1e-11 * cp * T.abs().clamp_min(1.0))
+        T, bad = newton_temperature(H, prm, T_ref, guess)
         if not bool(bad.any()):
             return T
-        idx = torch.nonzero(bad).squeeze(1)
-        return T.index_copy(0, idx, temperature_from_enthalpy(H.index_select(0, idx), prm, T_ref))
+        return fix_temperature(H, prm, T_ref, T, bad)
     dT = prm.liquidus - prm.solidus
     tsl = 0.5 * (prm.solidus + prm.liquidus)
     l_ref = 0.5 * prm.latent_heat * math.erf((T_ref - tsl) / dT)
@@ -88,6 +84,22 @@ def temperature_from_enthalpy(H: torch.Tensor, prm: ThermalParams, T_ref: float,
     for _ in range(2):
         T = T - (enthalpy(T, prm, T_ref) - H) / effective_heat_capacity(T, prm)
     return T
+
+
+def newton_temperature(H: torch.Tensor, prm: ThermalParams, T_ref: float, guess: torch.Tensor):
+    """(T after three Newton steps on h(T) = H from ``guess``, the mask of the rows whose
+    residual is not below 1e-11 c_p max(T, 1)): no read of the host."""
+    T = guess
+    for _ in range(3):
+        T = T - (enthalpy(T, prm, T_ref) - H) / effective_heat_capacity(T, prm)
+    bad = ~((enthalpy(T, prm, T_ref) - H).abs() <= 1e-11 * prm.specific_heat * T.abs().clamp_min(1.0))
+    return T, bad
+
+
+def fix_temperature(H, prm: ThermalParams, T_ref: float, T: torch.Tensor, bad: torch.Tensor) -> torch.Tensor:
+    """T with the ``bad`` rows inverted afresh by bisection (:func:`temperature_from_enthalpy`)."""
+    idx = torch.nonzero(bad).squeeze(1)
+    return T.index_copy(0, idx, temperature_from_enthalpy(H.index_select(0, idx), prm, T_ref))
 
 
 def liquid_fraction(T: torch.Tensor, prm: ThermalParams) -> torch.Tensor:
@@ -207,6 +219,19 @@ def wall_temperature_pairs(x, T, rows, nb, mask, kernel: Kernel, h: float, domai
     dx, r = pair_geometry(x, rows, nb, domain, h)
     Wk = kernel.w(r, h) * mask
     return (gather_nb(T, nb) * Wk).sum(1), Wk.sum(1)
+
+
+@dataclass
+class Inversion:
+    """Temperatures from :meth:`Conduction.to_temperature_unchecked`: ``T``, and ``bad``
+    (None: exact) the rows where Newton did not converge, which ``fixed()`` inverts afresh."""
+    T: torch.Tensor
+    bad: torch.Tensor | None
+    H: torch.Tensor
+    prm: ThermalParams
+
+    def fixed(self) -> torch.Tensor:
+        return self.T if self.bad is None else fix_temperature(self.H, self.prm, 0.0, self.T, self.bad)
 
 
 class Conduction:
@@ -433,41 +458,19 @@ class Conduction:
     provisional = False  # steady set guessed (arrays not carried): G is made anew at the next build
 
     def beam_candidates(self, x_ref: torch.Tensor, reach: float | None, comm) -> list | None:
-        """For each beam whose aim does not move: the positions in ``rows`` of the particles
-        within its traced cylinder (3 r) widened by ``reach``, at ``x_ref`` (the particles
-        move less than ``reach`` from there until the next neighbour build, so no other
-        can enter it); None for a moving beam (every row is traced)."""
+        """Per beam, the positions in ``rows`` it can reach before the next neighbour build
+        (:func:`torchsph.beam.reachable`; one process only)."""
         if not self.beams or reach is None or (comm is not None and comm.size > 1):
             return None
-        x = x_ref.index_select(0, self.rows)
-        out = []
-        for b in self.beams:
-            if any(b.velocity):
-                out.append(None)
-                continue
-            _, a, c = beam_frame(x, b, 0.0)
-            out.append(torch.nonzero((a * a + c * c).sqrt() < 3.0 * b.radius + reach * (1 + 1e-9) + 1e-12).squeeze(1))
-        return out
+        return reachable(self.beams, x_ref.index_select(0, self.rows), reach)
 
     def beam_power_rows(self, state: ParticleState, t: float, rows: torch.Tensor) -> torch.Tensor:
         """:meth:`beam_power` on ``rows`` only (each beam traced on the rows it can reach)."""
         comm = getattr(self, "comm", None)
         if comm is not None and comm.size > 1:
             return beam_power_decomposed(self, state, t, rows, comm)
-        x = state.x.index_select(0, rows)
-        subs = self.beam_rows if self.beam_rows is not None and rows is self.rows else [None] * len(self.beams)
-        total = 0
-        for b, sub in zip(self.beams, subs):
-            if sub is None:
-                total = total + beam_power(x, torch.ones(rows.numel(), dtype=torch.bool, device=x.device), b, t, self.dx)
-                continue
-            if sub.numel() == 0:  # nothing within its reach
-                total = total + torch.zeros(rows.numel(), dtype=x.dtype, device=x.device)
-                continue
-            xs = x.index_select(0, sub)
-            p = beam_power(xs, torch.ones(sub.numel(), dtype=torch.bool, device=x.device), b, t, self.dx)
-            total = total + torch.zeros(rows.numel(), dtype=x.dtype, device=x.device).index_copy_(0, sub, p)
-        return total
+        subs = self.beam_rows if rows is getattr(self, "rows", None) else None
+        return beams_power(self.beams, state.x.index_select(0, rows), t, self.dx, subs)
 
     def lit_mask(self, state: ParticleState, t: float) -> torch.Tensor | None:
         """Particles any beam lights at time t (all non-wall particles considered)."""
@@ -491,35 +494,21 @@ class Conduction:
             self.lit = torch.cat([self.lit, torch.zeros(new.n, dtype=torch.bool, device=self.lit.device)])
 
     def surface_area(self, state: ParticleState) -> torch.Tensor:
-        """Area (m^2) of free surface each particle stands for: V_i |grad c_i| (the CSF
-        surface delta) divided by its flat-lattice sum, so that a flat surface gets
-        exactly its area. Particles with |grad c| h < 0.05 (the interior) get none.
-        Also sets ``self.normal``, the outward unit normal of surface particles (0 inside)."""
-        sub, prev = self._rows_to_compute("area")
-        rows, nb = (self.rows, self.nb) if sub is None else (self.rows.index_select(0, sub), self.nb.index_select(0, sub))
-        want, self.area_want = self.area_want, None
-        if want is not None and want[0] is self.area_prev and want[1] is self.area_ok:  # the rows asked for
-            g = self.colour.of(state, "area")
-        else:
-            g = colour_gradient_pairs(state.x, state.m, state.rho, rows, nb, self.kernel, self.h, self.domain)
-        self.colour.want("area", None)  # (until the next selection)
-        gn = g.norm(dim=-1)
-        surface = gn * self.h > self.colour.threshold
-        gn = torch.where(surface, gn, torch.zeros_like(gn))
-        # outward unit normal n = -grad c / |grad c| on surface particles, 0 inside
-        n_out = torch.where(surface.unsqueeze(-1), -g / gn.clamp_min(1e-300).unsqueeze(-1), torch.zeros_like(g))
-        a = (state.m / state.rho).index_select(0, rows) * gn / self.delta_norm
-        normal_prev = self.normal_prev
-        in_rows = self._computed("area", state.n)
-        self.normal_prev = None
-        if prev is not None and normal_prev is not None:  # as computed whole: 0 off the rows
-            self.normal = torch.where(in_rows.unsqueeze(-1), normal_prev, 0.0).index_copy(0, rows, n_out)
-            return torch.where(in_rows, prev, 0.0).index_copy(0, rows, a)
-        self.normal = embed(rows, n_out, state.n)
-        return embed(rows, a, state.n)
+        """:func:`surface_area` of this model's rows (sets ``normal``)."""
+        return surface_area(self, state)
 
     def to_enthalpy(self, T: torch.Tensor) -> torch.Tensor:
         return enthalpy(T, self.prm, 0.0)
+
+    def to_temperature_unchecked(self, H: torch.Tensor, guess: torch.Tensor) -> "Inversion":
+        """T from the specific enthalpy by Newton from ``guess``, the convergence not read:
+        an :class:`Inversion` whose ``bad`` mask the step reads with its other decisions, and
+        whose ``fixed()`` inverts the rows that did not converge (a step across the mushy
+        interval; none in 300 steps of the preview's developed melt pool)."""
+        if self.prm.latent_heat <= 0.0:  # (an empty H still gets a mask: every process reads alike)
+            return Inversion(self.to_temperature(H, guess), None, H, self.prm)
+        T, bad = newton_temperature(H, self.prm, 0.0, guess)
+        return Inversion(T, bad, H, self.prm)
 
     def to_temperature(self, H: torch.Tensor, guess: torch.Tensor | None = None) -> torch.Tensor:
         return temperature_from_enthalpy(H, self.prm, 0.0, guess)
@@ -539,6 +528,35 @@ class Conduction:
         if self.rows.numel():
             r = torch.minimum(state.rho.index_select(0, self.rows).min(), r)
         return r if not self.rows_w.numel() else torch.minimum(r, state.rho.index_select(0, self.rows_w).min())
+
+
+def surface_area(th, state: ParticleState) -> torch.Tensor:
+    """Area (m^2) of free surface each particle of ``th`` (:class:`Conduction`) stands for: V_i |grad c_i| (the CSF
+    surface delta) divided by its flat-lattice sum, so that a flat surface gets
+    exactly its area. Particles with |grad c| h < 0.05 (the interior) get none.
+    Also sets ``th.normal``, the outward unit normal of surface particles (0 inside)."""
+    sub, prev = th._rows_to_compute("area")
+    rows, nb = (th.rows, th.nb) if sub is None else (th.rows.index_select(0, sub), th.nb.index_select(0, sub))
+    want, th.area_want = th.area_want, None
+    if want is not None and want[0] is th.area_prev and want[1] is th.area_ok:  # the rows asked for
+        g = th.colour.of(state, "area")
+    else:
+        g = colour_gradient_pairs(state.x, state.m, state.rho, rows, nb, th.kernel, th.h, th.domain)
+    th.colour.want("area", None)  # (until the next selection)
+    gn = g.norm(dim=-1)
+    surface = gn * th.h > th.colour.threshold
+    gn = torch.where(surface, gn, torch.zeros_like(gn))
+    # outward unit normal n = -grad c / |grad c| on surface particles, 0 inside
+    n_out = torch.where(surface.unsqueeze(-1), -g / gn.clamp_min(1e-300).unsqueeze(-1), torch.zeros_like(g))
+    a = (state.m / state.rho).index_select(0, rows) * gn / th.delta_norm
+    normal_prev = th.normal_prev
+    in_rows = th._computed("area", state.n)
+    th.normal_prev = None
+    if prev is not None and normal_prev is not None:  # as computed whole: 0 off the rows
+        th.normal = torch.where(in_rows.unsqueeze(-1), normal_prev, 0.0).index_copy(0, rows, n_out)
+        return torch.where(in_rows, prev, 0.0).index_copy(0, rows, a)
+    th.normal = embed(rows, n_out, state.n)
+    return embed(rows, a, state.n)
 
 
 def evaporation_limit(th, state: ParticleState):
