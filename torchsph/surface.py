@@ -145,38 +145,34 @@ class SurfaceForces:
         zero = torch.zeros_like(x)
         g = self.colour.of(state, "surface")
         gn = g.norm(dim=-1)
+        # every fluid row is evaluated and the ones off the surface masked out: fixed shapes,
+        # no read of the host (the surface rows' values are those of a surface-only sum)
         on = gn * self.h > self.colour.threshold
-        sel = torch.nonzero(on).squeeze(1)
-        rows = self.rows_f.index_select(0, sel)
-        self.n_surface = rows.numel()
+        rows, nb, onv = self.rows_f, self.nb_f, on.unsqueeze(-1)
+        onf = onv.to(rho.dtype)  # (a product with it: every factor it masks is finite)
+        self.n_surface = on.sum()  # (a tensor: the plan statistics sum it without a read)
         self.normal = zero  # (zero off the surface rows; written in place below)
         self.kappa = torch.zeros_like(rho)
         parts = {}
-        if rows.numel() == 0:
-            if rows_only:
-                return rows, zero[:0]
-            zero = zero.clone()  # (not the normal itself)
-            return (zero, {"surface_tension": zero}) if terms else zero
-        nb = self.nb_f.index_select(0, sel)
-        gs, gns = g.index_select(0, sel), gn.index_select(0, sel)
-        n_out = -gs / gns.unsqueeze(-1)
+        gns = torch.where(on, gn, torch.ones_like(gn))
+        n_out = -g / gns.unsqueeze(-1) * onf
         self.normal.index_copy_(0, rows, n_out)
-        flag = torch.zeros_like(rho).index_fill_(0, rows, 1.0)  # surface fluid particles
+        flag = torch.zeros_like(rho).index_copy_(0, rows, on.to(rho.dtype))  # surface fluid particles
         # force per unit mass = (force per area) x A_i / m_i = (force per area) |grad c| / (rho D)
-        per_area = (gns / (rho.index_select(0, rows) * self.delta_norm)).unsqueeze(-1)
+        per_area = (gns / (rho.index_select(0, rows) * self.delta_norm)).unsqueeze(-1) * onf
         a = torch.zeros_like(n_out)
         if prm.tension > 0 or prm.dtension_dT != 0.0:
             # kernel-smoothed normals: on a lattice staircase the raw ones turn at the
             # corners and overstate kappa there by 30-90 % (10-40 % once smoothed)
-            nsm = self._fns["smooth"](x, self.normal, flag, m, rho, rows, nb,
-                                      self.mask_f.index_select(0, sel).to(rho.dtype), self.kernel,
-                                      self.h, self.domain)
-            nsm = nsm / nsm.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+            nsm = self._fns["smooth"](x, self.normal, flag, m, rho, rows, nb, self.mask_f.to(rho.dtype),
+                                      self.kernel, self.h, self.domain)
+            nsm = nsm / nsm.norm(dim=-1, keepdim=True).clamp_min(1e-30) * onf
             nfield = torch.zeros_like(x).index_copy_(0, rows, nsm)  # (read at surface rows only)
             gradn = solve_gradient(*self._fns["moments"](x, nfield, flag, m, rho, rows, nb, self.kernel,
                                                          self.h, self.domain))
             kappa = torch.diagonal(gradn, dim1=-2, dim2=-1).sum(-1)
             kappa = kappa / (1.0 + self.band_depth * kappa / (d - 1)).clamp_min(0.5)
+            kappa = torch.where(on, kappa, torch.zeros_like(kappa))
             self.kappa.index_copy_(0, rows, kappa)
             alpha = self.tension(state.T.index_select(0, rows))
             parts["surface_tension"] = -(alpha * kappa).unsqueeze(-1) * n_out * per_area
@@ -188,7 +184,7 @@ class SurfaceForces:
             gT_t = gT - dot(gT, n_out).unsqueeze(-1) * n_out
             T = state.T.index_select(0, rows)
             live = (self.tension(T) > 0).to(rho.dtype).unsqueeze(-1)  # alpha clamped at 0: no gradient
-            parts["marangoni"] = prm.dtension_dT * gT_t * per_area * live
+            parts["marangoni"] = torch.where(onv, prm.dtension_dT * gT_t * per_area * live, torch.zeros_like(gT_t))
             a = a + parts["marangoni"]
         if prm.recoil:
             pv = self.vapour_pressure(state.T.index_select(0, rows))
