@@ -28,7 +28,8 @@ class PlanStats:
             integrated.index_fill_(0, sim.thermal.rows, True)
         self.n_active = int((integrated if own is None else integrated & own).sum())
         self.all_pairs = s.n * int(per_row.sum()) / nbuilt
-        pairs = lambda rows: int(table.gather(rows, within=True)[1].sum())  # noqa: E731
+        # (a row's pair count from the per-row counts: no gather of the table's rows)
+        pairs = lambda rows: int(per_row.index_select(0, table.slot.index_select(0, rows)).sum())  # noqa: E731
         if sim.fluid is not None:
             f = sim.fluid
             cur["momentum"] = (f.rows_f.numel(), pairs(f.rows_f))
