@@ -1,6 +1,8 @@
 """Per-term work statistics of a run (the physics plan's cost, reported in summary.json)."""
 from __future__ import annotations
 
+import torch
+
 
 class PlanStats:
     """Per-term work actually done, averaged over the steps: particles (rows) and pairs
@@ -28,8 +30,11 @@ class PlanStats:
             integrated.index_fill_(0, sim.thermal.rows, True)
         self.n_active = int((integrated if own is None else integrated & own).sum())
         self.all_pairs = s.n * int(per_row.sum()) / nbuilt
-        # (a row's pair count from the per-row counts: no gather of the table's rows)
-        pairs = lambda rows: int(per_row.index_select(0, table.slot.index_select(0, rows)).sum())  # noqa: E731
+        def pairs(rows):  # from the per-row counts (no gather of the table's rows); 0 without a row
+            if per_row.numel() == 0:
+                return 0
+            s = table.slot.index_select(0, rows)
+            return int(torch.where(s >= 0, per_row.index_select(0, s.clamp_min(0)), 0).sum())
         if sim.fluid is not None:
             f = sim.fluid
             cur["momentum"] = (f.rows_f.numel(), pairs(f.rows_f))
