@@ -14,22 +14,19 @@ from .state import Phase
 
 @dataclass
 class PhaseChange:
+    """Solid particles above T_L join the fluid (and leave their body); fluid particles
+    below T_S join the rigid body they rest on (the one with the largest kernel weight
+    among their solid neighbours) and take its velocity; fluid in the mushy zone is
+    dragged towards the local solid velocity with the Carman-Kozeny rate
+    C (1 - phi)^2 / (phi^3 + 1e-3), integrated exactly (u - u_s decays as exp(-rate dt)),
+    so any C is stable. Carman-Kozeny rather than a viscosity ramp: the harmonic mean of
+    (3.8) lets the low melt viscosity dominate a pair, so a viscosity ramp barely damps.
+    The step calls :meth:`decide`, :meth:`change` (where a phase changed) and :meth:`drag`
+    (:func:`torchsph.bookkeeping.finish_step`)."""
+
     T_S: float  # solidus (K): melt below it freezes
     T_L: float  # liquidus (K): solid above it melts
     C: float  # mushy-zone drag (1/s)
-
-    def update(self, sim, dt: float):
-        """Solid particles above T_L join the fluid (and leave their body); fluid particles
-        below T_S join the rigid body they rest on (the one with the largest kernel weight
-        among their solid neighbours) and take its velocity; fluid in the mushy zone is
-        dragged towards the local solid velocity with the Carman-Kozeny rate
-        C (1 - phi)^2 / (phi^3 + 1e-3), integrated exactly (u - u_s decays as exp(-rate dt)),
-        so any C is stable. Carman-Kozeny rather than a viscosity ramp: the harmonic mean of
-        (3.8) lets the low melt viscosity dominate a pair, so a viscosity ramp barely damps."""
-        melt, freeze, counts = self.decide(sim)
-        n_melt, n_freeze = counts.tolist()
-        self.change(sim, melt, freeze, n_melt, n_freeze, sim.comm.sum([n_melt, n_freeze]))
-        self.drag(sim, dt)
 
     def decide(self, sim):
         """(the particles that melt, those that freeze, their counts as a device tensor)."""
@@ -66,7 +63,7 @@ class PhaseChange:
                 sim.dvdt = sim.accelerations(s.v)
 
     def drag(self, sim, dt: float):
-        """The mushy-zone drag of the step (see :meth:`update`)."""
+        """The mushy-zone drag of the step (see the class)."""
         T_S, T_L, C = self.T_S, self.T_L, self.C
         s = sim.state
         if sim.fluid is None or C <= 0:

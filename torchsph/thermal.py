@@ -505,9 +505,9 @@ class Conduction:
         an :class:`Inversion` whose ``bad`` mask the step reads with its other decisions, and
         whose ``fixed()`` inverts the rows that did not converge (a step across the mushy
         interval; none in 300 steps of the preview's developed melt pool)."""
-        if self.prm.latent_heat <= 0.0:  # (an empty H still gets a mask: every process reads alike)
+        if self.prm.latent_heat <= 0.0:  # exact: nothing to check
             return Inversion(self.to_temperature(H, guess), None, H, self.prm)
-        T, bad = newton_temperature(H, self.prm, 0.0, guess)
+        T, bad = newton_temperature(H, self.prm, 0.0, guess)  # (an empty H gets an empty mask: every process reads alike)
         return Inversion(T, bad, H, self.prm)
 
     def to_temperature(self, H: torch.Tensor, guess: torch.Tensor | None = None) -> torch.Tensor:
