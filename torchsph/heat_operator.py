@@ -142,7 +142,7 @@ class ConductionOperator:
         live = self.steady.index_select(0, i) & self.steady.index_select(0, j)
         g = material_factor(k.index_select(0, i), k.index_select(0, j), zeta.index_select(0, i),
                             zeta.index_select(0, j)) * self.g_f
-        g = torch.where(live, g, torch.zeros_like(g))
+        self.g = g = torch.where(live, g, torch.zeros_like(g))
         with warnings.catch_warnings():  # "sparse CSR support is in beta": mv on CSR is what we use of it
             warnings.simplefilter("ignore", UserWarning)
             self.G = torch.sparse_csr_tensor(self.crow, j, g, size=(self.rows.numel(), k.shape[0]),
@@ -152,7 +152,12 @@ class ConductionOperator:
     def apply(self, x, T, k, V, zeta) -> torch.Tensor:
         """(div k grad T) on ``rows``: the matrix product plus the moving pairs' sum."""
         if self.n_static:
-            u = self.G @ torch.stack([V, V * T], 1)
+            X = torch.stack([V, V * T], 1)
+            if torch.compiler.is_compiling():  # a traced step has no sparse tensors: G's entries summed
+                u = torch.zeros(self.rows.numel(), 2, dtype=T.dtype, device=T.device).index_add_(
+                    0, self.g_row, self.g.unsqueeze(1) * X.index_select(0, self.g_j))
+            else:
+                u = self.G @ X
             q = T.index_select(0, self.rows) * u[:, 0] - u[:, 1]
         else:
             q = torch.zeros(self.rows.numel(), dtype=T.dtype, device=T.device)

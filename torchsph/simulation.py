@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from . import bookkeeping, diagnosis, limits as step_limits, particles, rates
+from . import bookkeeping, diagnosis, limits as step_limits, particles, rates, step
 from .active import ActiveSet
 from .comm import SerialComm
 from .fluid import WeaklyCompressibleFluid
@@ -214,37 +214,13 @@ class Simulation:
         self.comm.begin_step(self)  # migration and new ghosts after a rebuild (decomposed runs)
         self.rebuilt = False
         self.T_prev = self.state.T
-        s = self.state
-        fm = self.fluid_mask.unsqueeze(-1)
-        a = self.dvdt  # zero for walls: they keep their prescribed velocity
-        # (one fused pass per whole-array update: at full size these passes over every particle,
-        # most of them rigid, cost more than the physics of the few that move)
-        v_half = torch.add(s.v, a, alpha=0.5 * dt)  # 1a
-        v_tilde = torch.add(s.v, a, alpha=dt)  # 1b, used by the viscous term at the end of the step
-        if self.thermal is not None:  # the energy equation in specific enthalpy h(T)
-            th = self.thermal
-            rows0 = th.rows  # integrated particles (not walls; only the active set when skipping)
-            T0, a_r = s.T, self.dTdt.index_select(0, rows0)
-            H_r = th.to_enthalpy(T0.index_select(0, rows0))
-            H_half_r = H_r + 0.5 * dt * a_r  # 1d on the rows (dh/dt = 0 off them: H_half = h(T) there)
-            H_half = None  # the whole array, made only where particles are added, removed or re-selected
+        dt_t = torch.full((), dt, dtype=torch.float64, device=self.state.device)  # (a fill: no copy, no read)
+        v_half, v_tilde, rows0, H_half_r, inv = step.first_half(self, dt_t)  # 1a-1e
+        T0 = self.T_prev
+        H_half = None  # the whole array, made only where particles are added, removed or re-selected
 
-            def whole_H_half():
-                return th.to_enthalpy(T0).index_copy_(0, rows0, H_half_r)
-            # extrapolated for the evaluation at the end of the step; walls keep theirs
-            inv = th.to_temperature_unchecked(H_r + dt * a_r, T0.index_select(0, rows0))  # checked after the drift
-            s.T = s.T.index_copy(0, rows0, inv.T)
-        shift = None
-        if self.fluid is not None:
-            self.drhodt, shift = self.fluid.continuity(  # at x_n, with u_{n+1/2}
-                v_half, s.m, self.dx if self.fluid.prm.shifting > 0 else 0.0, rho=s.rho)
-            s.rho = s.rho + dt * self.drhodt
-        x_new = torch.add(s.x, torch.where(fm, v_half, s.v), alpha=dt)  # 1e (rigid bodies move with their velocity)
-        if shift is not None:
-            if self.surface is not None:
-                shift = self.surface.project_shift(shift, self.fluid.rows_f)
-            x_new = x_new.index_add_(0, self.fluid.rows_f, shift)
-        s.x = self.domain.wrap(x_new)
+        def whole_H_half():
+            return self.thermal.to_enthalpy(T0).index_copy_(0, rows0, H_half_r)
         answers = bookkeeping.mid_step_read(self, (rows0, inv) if self.thermal is not None else None)  # one read
         if self.feeder is not None:  # new particles enter at t + dt
             new = self.feeder.new_particles(self, self.t + dt, answers)
@@ -260,8 +236,6 @@ class Simulation:
                         v_half, v_tilde = v_half.index_select(0, perm), v_tilde.index_select(0, perm)
                         if self.thermal is not None:
                             H_half = H_half.index_select(0, perm)
-                fm = self.fluid_mask.unsqueeze(-1)
-                s = self.state
         due = None
         if self.escape is not None:  # at a rebuild point: particles that have left the scene go
             due, keep = particles.remove_escaped(self, self.t + dt, (lambda: whole_H_half() if H_half is None else H_half)
@@ -272,39 +246,29 @@ class Simulation:
                     H_half = (whole_H_half() if H_half is None else H_half)[keep]
                     new_row = torch.cumsum(keep.long(), 0) - 1
                     rows0 = new_row.index_select(0, rows0[keep.index_select(0, rows0)])
-                fm = self.fluid_mask.unsqueeze(-1)
-                s = self.state
         if due is None:
             self.refresh_pairs()
         elif due:  # decided above (on every process): no second test, no second collective
             self.refresh_pairs(force=True)
-        if self.fluid is not None:
-            self.dvdt = self.accelerations(v_tilde)  # 2
-            if self.t + dt < self.damping_time:
-                self.dvdt = self.dvdt - step_limits.damping_rate(self.damping_time, self.t + dt) * torch.where(
-                    fm, v_tilde, torch.zeros_like(v_tilde))
-        s.v = v_half.add_(self.dvdt, alpha=0.5 * dt)  # 3c (v_half is this step's own array)
-        if self.new_body_velocity:  # a body's velocity was changed during the step (a feed starts)
-            self.new_body_velocity = False
-            solid = (s.phase == Phase.SOLID).unsqueeze(-1)
-            s.v = torch.where(solid, self.body_velocity.index_select(0, s.body), s.v)
-        if self.thermal is not None:
-            P, heat = rates.heat_power(self, s.T, self.t + dt)  # 2 (W per particle; 0 on walls)
-            self.dTdt = P / s.m
-            for k, v in heat.items():  # accumulated on the device: no sync per step
-                self.energy[k] = self.energy.get(k, 0.0) + 0.5 * dt * (self.heat_totals[k] + v)
-            self.heat_totals = heat
+        damping = None  # the settling drag (numerics.damping_time_s)
+        if self.fluid is not None and self.t + dt < self.damping_time:
+            damping = torch.full((), step_limits.damping_rate(self.damping_time, self.t + dt), dtype=torch.float64,
+                                 device=self.state.device)
+        step.close_momentum(self, dt_t, damping, v_half, v_tilde)  # 2, 3c
+        ending = None
+        if self.thermal is not None:  # the rows of the end's temperatures, and their h_{n+1/2}
+            th = self.thermal
             rows = th.rows if th.rows is rows0 else torch.unique(torch.cat([rows0, th.rows]))
             if H_half is None and rows is rows0:
                 Hh = H_half_r
             else:
                 Hh = (whole_H_half() if H_half is None else H_half).index_select(0, rows)
-            inv = th.to_temperature_unchecked(  # 3b (its convergence read at the step's end)
-                Hh + 0.5 * dt * self.dTdt.index_select(0, rows), s.T.index_select(0, rows))
-            ending = bookkeeping.EndTemperatures(s, rows, inv)
+            th.prepare(self.state)  # a new selection's cached values, outside the traced parts
+            t_end = torch.full((), self.t + dt, dtype=torch.float64, device=self.state.device)
+            ending = step.close_energy(self, dt_t, t_end, rows, Hh)  # 2, 3b
         self.t += dt
         self.step += 1
-        flags = bookkeeping.finish_step(self, dt, ending if self.thermal is not None else None)
+        flags = bookkeeping.finish_step(self, dt, ending)
         diagnosis.check_finite(self, v_tilde, dt, limit, flags.get("T_ok"))
         self.plan.add(self)
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])

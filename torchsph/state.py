@@ -1,14 +1,14 @@
 """Particle state: one tensor per field, all on one device and in one float dtype."""
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, fields
 
 import torch
 
 
-class Phase(enum.IntEnum):
-    """Material tag of a particle."""
+class Phase:
+    """Material tag of a particle (plain ints, not an enum: a traced step compares tensors
+    with them)."""
 
     FLUID = 0  # moves by the momentum equation
     WALL = 1  # rigid boundary particle (Adami 2012 wall condition; fixed temperature)

@@ -390,13 +390,19 @@ class Conduction:
         """div(k grad T) per unit volume (W/m^3) at temperatures ``T``; 0 on walls."""
         return embed(self.rows, self.heat_rate_rows(state, T), state.n)
 
-    def heat_rate_rows(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
-        """div(k grad T) (W/m^3) on ``rows`` only."""
-        T = self.wall_temperature(state, T)
+    def prepare(self, state: ParticleState):
+        """Once per pair selection, at its first evaluation: the Laplacian normalisation and
+        the operator's values (the step calls it before its second half, which then has no
+        branch on them)."""
         if self.zeta_cache is None:
             self.zeta_cache = self.zeta(state)
         if not self.op.built:  # once per selection, when zeta is known
             self.op.build(self.k, self.zeta_cache)
+
+    def heat_rate_rows(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
+        """div(k grad T) (W/m^3) on ``rows`` only."""
+        T = self.wall_temperature(state, T)
+        self.prepare(state)
         return self.op.apply(state.x, T, self.k, state.m / state.rho, self.zeta_cache)
 
     def zeta(self, state: ParticleState) -> torch.Tensor:

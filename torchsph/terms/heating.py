@@ -72,12 +72,11 @@ class VolumetricHeating(Term):
     def select(self, sim) -> None:
         self.cp = sim.thermal.prm.specific_heat
 
-    def heat(self, sim, t: float, rows: torch.Tensor) -> torch.Tensor:
+    def heat(self, sim, t, rows: torch.Tensor) -> torch.Tensor:
         s = sim.state
         V = s.m.index_select(0, rows) / s.rho.index_select(0, rows)
-        if not self.on(t):
-            return torch.zeros_like(V)
-        return torch.where(self.inside(s.x.index_select(0, rows)), self.q * V, torch.zeros_like(V))
+        on = (t >= self.t_start) & (t < self.t_end)  # (t a 0-d tensor in the step: no branch on it)
+        return torch.where(self.inside(s.x.index_select(0, rows)) & on, self.q * V, torch.zeros_like(V))
 
     def seeds(self, sim, t: float) -> torch.Tensor | None:
         s = sim.state

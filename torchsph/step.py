@@ -1,0 +1,100 @@
+"""The two halves of a kick-drift-kick step that hold its arithmetic (SPEC §4), with no host
+read in either: :func:`first_half` (1a-1e: the half kick, the extrapolations, the density
+and the drift) and the second, :func:`close_momentum` then :func:`close_energy` (2 and 3:
+the rates at the end of the step and the closing half kicks; apart because the selection's
+cached conduction values are made between them, once per selection, eagerly). Between them the step reads the host once (the feed's contact, whether
+to rebuild, whether the extrapolated temperatures converged:
+:func:`torchsph.bookkeeping.mid_step_read`), and after the second once more (the measures,
+the next limits, the phase changes: :func:`torchsph.bookkeeping.finish_step`); particles
+enter and leave, and the pairs are rebuilt, only between them, at those reads.
+
+On a step between rebuilds each part has fixed shapes and no data-dependent branch, so
+``torch.compile(fullgraph=True)`` traces each whole (tests/test_compile.py): the condition
+for capturing them as CUDA graphs."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from . import rates
+from .bookkeeping import EndTemperatures
+from .state import Phase
+
+
+class Half(NamedTuple):
+    """What :func:`first_half` hands to the rest of the step."""
+    v_half: torch.Tensor  # u_{n+1/2} (1a)
+    v_tilde: torch.Tensor  # u_n + dt du/dt, for the viscous term at the end of the step (1b)
+    rows0: torch.Tensor | None  # the integrated rows of the energy equation
+    H_half_r: torch.Tensor | None  # h_{n+1/2} on rows0 (1d)
+    inv: object | None  # the extrapolated temperatures on rows0 (an Inversion, unchecked)
+
+
+def first_half(sim, dt: torch.Tensor) -> Half:
+    """1a-1e (``dt``: a 0-d float64 tensor, so a traced half is not specialised to its value): half kick, extrapolated velocity and enthalpy (the temperatures of the rate
+    evaluation), density, drift (with shifting). Sets the state's T, rho and x."""
+    s = sim.state
+    fm = sim.fluid_mask.unsqueeze(-1)
+    a = sim.dvdt  # zero for walls: they keep their prescribed velocity
+    # (one fused pass per whole-array update: at full size these passes over every particle,
+    # most of them rigid, cost more than the physics of the few that move)
+    half = 0.5 * dt
+    v_half = torch.addcmul(s.v, a, half)  # 1a (v + dt/2 a, fused as torch.add(alpha=) is)
+    v_tilde = torch.addcmul(s.v, a, dt)  # 1b
+    rows0 = H_half_r = inv = None
+    if sim.thermal is not None:  # the energy equation in specific enthalpy h(T)
+        th = sim.thermal
+        rows0 = th.rows  # integrated particles (not walls; only the active set when skipping)
+        T0, a_r = s.T, sim.dTdt.index_select(0, rows0)
+        H_r = th.to_enthalpy(T0.index_select(0, rows0))
+        H_half_r = H_r + 0.5 * dt * a_r  # 1d on the rows (dh/dt = 0 off them: H_half = h(T) there)
+        # extrapolated for the evaluation at the end of the step; walls keep theirs
+        inv = th.to_temperature_unchecked(H_r + dt * a_r, T0.index_select(0, rows0))  # checked at the mid read
+        s.T = s.T.index_copy(0, rows0, inv.T)
+    shift = None
+    if sim.fluid is not None:
+        sim.drhodt, shift = sim.fluid.continuity(  # at x_n, with u_{n+1/2}
+            v_half, s.m, sim.dx if sim.fluid.prm.shifting > 0 else 0.0, rho=s.rho)
+        s.rho = s.rho + dt * sim.drhodt
+    x_new = torch.addcmul(s.x, torch.where(fm, v_half, s.v), dt)  # 1e (rigid bodies move with their velocity)
+    if shift is not None:
+        if sim.surface is not None:
+            shift = sim.surface.project_shift(shift, sim.fluid.rows_f)
+        x_new = x_new.index_add_(0, sim.fluid.rows_f, shift)
+    s.x = sim.domain.wrap(x_new)
+    return Half(v_half, v_tilde, rows0, H_half_r, inv)
+
+
+def close_momentum(sim, dt: torch.Tensor, damping: torch.Tensor | None, v_half, v_tilde):
+    """2 and 3c at the end of the step: the accelerations with the extrapolated velocity
+    (``damping``: the settling drag's rate then, a 0-d tensor, or None) and the closing half
+    kick (into ``v_half``, this step's own array)."""
+    s = sim.state
+    if sim.fluid is not None:
+        sim.dvdt = sim.accelerations(v_tilde)  # 2
+        if damping is not None:
+            fm = sim.fluid_mask.unsqueeze(-1)
+            sim.dvdt = sim.dvdt - damping * torch.where(fm, v_tilde, torch.zeros_like(v_tilde))
+    s.v = v_half.addcmul_(sim.dvdt, 0.5 * dt)  # 3c
+    if sim.new_body_velocity:  # a body's velocity was changed during the step (a feed starts)
+        sim.new_body_velocity = False
+        solid = (s.phase == Phase.SOLID).unsqueeze(-1)
+        s.v = torch.where(solid, sim.body_velocity.index_select(0, s.body), s.v)
+
+
+def close_energy(sim, dt: torch.Tensor, t_end: torch.Tensor, rows, H_half) -> EndTemperatures:
+    """2 and 3b at t_end (a 0-d tensor, as ``dt``): the heat per particle, its energy booked (trapezoid), and the end's
+    temperatures on ``rows`` from their half-step enthalpy ``H_half`` (put in unchecked: the
+    end's read says whether Newton converged). After :func:`close_momentum` (the melt's
+    walls take their densities there) and the selection's cached values
+    (:meth:`~torchsph.thermal.Conduction.prepare`)."""
+    s, th = sim.state, sim.thermal
+    P, heat = rates.heat_power(sim, s.T, t_end)  # 2 (W per particle; 0 on walls)
+    sim.dTdt = P / s.m
+    for k, v in heat.items():  # accumulated on the device: no sync per step
+        sim.energy[k] = sim.energy.get(k, 0.0) + 0.5 * dt * (sim.heat_totals[k] + v)
+    sim.heat_totals = heat
+    inv = th.to_temperature_unchecked(  # 3b
+        H_half + 0.5 * dt * sim.dTdt.index_select(0, rows), s.T.index_select(0, rows))
+    return EndTemperatures(s, rows, inv)
