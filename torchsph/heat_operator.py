@@ -114,7 +114,7 @@ class ConductionOperator:
         again at the next evaluation (zeta and the steady set may have changed)."""
         cand = ~steady | (body != self.main_body)
         if work is not None:
-            cand = cand & work
+            cand = cand & work & table.has_row()  # (a decomposed work set's outer ghosts have no row)
         cidx = torch.nonzero(cand).squeeze(1)
         nbc, mc = table.gather(cidx, within=True)
         kk = nbc.shape[1]

@@ -256,6 +256,10 @@ class NeighbourTable:
     def k(self) -> int:
         return self.nb.shape[1]
 
+    def has_row(self) -> torch.Tensor:
+        """Mask of the particles with a row."""
+        return self.slot >= 0
+
     def gather(self, idx: torch.Tensor, within: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """(nb, mask) of the particles ``idx``, shape (len(idx), k); a particle without a row
         gets an empty one (itself, mask False). ``within``: the caller knows every one has a

@@ -1,6 +1,7 @@
 """How a run's step cost grows with its heated zone: ms per step over windows of process time.
 
     python scripts/tools/step_cost.py CASE --t-end T [--window W] [--set key=value ...] [--out FILE]
+                                      [--checkpoint FILE]
     mpirun -n 2 python scripts/tools/step_cost.py CASE --t-end T ...
 
 Runs the case (in one process, or decomposed when launched by mpirun) from t = 0 to T and
@@ -8,7 +9,9 @@ prints, for every window of W seconds of process time: the steps, the wall time 
 the neighbour rebuilds, and the particles the step integrates and works on (active, work;
 summed over ranks), and at the end the projection of the case's whole ``run.t_end_s`` from
 the last window's cost (process time per wall second). With ``--out`` the table is also
-written as JSON. The set-up is timed apart. Nothing else is written (no snapshots).
+written as JSON. The set-up is timed apart. Nothing else is written (no snapshots), but
+with ``--checkpoint`` the state at T (a checkpoint `python -m torchsph CASE --restart FILE`
+continues, and the deposition bench's late state).
 """
 from __future__ import annotations
 
@@ -21,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph.__main__ import mpi_size  # noqa: E402
 from torchsph.config import load_case  # noqa: E402
-from torchsph.runner import make_simulation, run_steps  # noqa: E402
+from torchsph.runner import SerialRun, make_simulation, run_steps  # noqa: E402
 
 
 def main():
@@ -31,6 +34,7 @@ def main():
     ap.add_argument("--window", type=float, default=1e-3, help="process time per table row, s")
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--checkpoint", type=Path, default=None, help="write the state at --t-end here")
     a = ap.parse_args()
     _, cfg = load_case(a.case, a.overrides)
     comm = None
@@ -68,6 +72,14 @@ def main():
         if root:
             print(f"{row['t_ms']:7.2f} {row['steps']:6d} {row['ms_per_step']:8.1f} {row['rebuilds']:8d} "
                   f"{n_act:8d} {n_work:8d}", flush=True)
+    if a.checkpoint is not None:
+        from torchsph import checkpoint as ckpt
+        args = (sim, a.checkpoint, ckpt.config_hash(cfg), {}, ckpt.physics(cfg))
+        if comm is None:
+            SerialRun().save(*args)
+        else:
+            from parallel.run import save_global
+            save_global(*args[:1], comm, *args[1:])
     if root:
         total = sum(r["wall_s"] for r in rows)
         last = rows[-1]
