@@ -151,3 +151,28 @@ def test_a_checkpoint_without_the_operators_arrays_gets_the_matrix_back_at_the_n
     run_steps(other, steps=1)
     op = other.thermal.op
     assert op.n_static > 0.8 * op.pairs, (op.n_static, op.pairs)
+
+
+def test_a_selection_reads_only_work_particles_with_a_table_row():
+    """A decomposed run's work set holds outer ghosts that have no table row (the table is
+    built for the particles whose neighbours that rank can know). A selection, as after a
+    phase change between rebuilds, must not read their rows: on the full scene at 3 ms on 2
+    ranks it stopped with an IndexError (fixed in dc52253). Here one halo particle's row is
+    taken out of the table (beam_plate: 135 halo particles): the selection runs, and the
+    conduction rate is the one of the whole table (a halo particle is a source only)."""
+    _, cfg = load_case(CASES / "beam_plate")
+    _, sim = make_simulation(cfg)
+    run_steps(sim, steps=20)
+    st, th, table = sim.state, sim.thermal, sim.nl.table
+    act, work = sim.active_set.active, sim.active_set.work
+    halo = torch.nonzero(work & ~act & (st.phase == Phase.SOLID) & table.has_row()).squeeze(1)
+    assert halo.numel() > 0
+    drop = halo[:1]
+    keep = table.rows[table.rows != drop]
+    slot = table.slot.index_select(0, keep)
+    part = type(table)(keep, table.nb.index_select(0, slot), table.mask.index_select(0, slot), table.n)
+    assert not bool(part.has_row()[drop]) and bool(work[drop])
+    q_whole = th.heat_rate(st, st.T)
+    th.select_pairs(st, part, active=act, work=work, x_ref=sim.nl.x_ref, new_table=True)
+    q_part = th.heat_rate(st, st.T)
+    assert torch.allclose(q_part, q_whole, rtol=1e-12, atol=1e-12 * float(q_whole.abs().max()))
