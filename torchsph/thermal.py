@@ -352,8 +352,7 @@ class Conduction:
         neighbours (a solid one is rigid)."""
         fluid = state.phase == Phase.FLUID
         solid = state.phase == Phase.SOLID
-        # (decomposed: the outer ghosts of the work set have no table row; one process: all have)
-        w = None if work is None else torch.nonzero(work & table.has_row()).squeeze(1)
+        w = None if work is None else torch.nonzero(work & table.has_row()).squeeze(1)  # (decomposed: outer ghosts have no row)
         nbw, mw = table.gather(torch.arange(state.n, device=state.x.device) if w is None else w, within=True)
         # solid next to melt is the melt's wall: its density follows the melt's pressure
         firm_w = (solid if w is None else solid.index_select(0, w)) & ~(gather_nb(fluid, nbw) & mw).any(1)
