@@ -7,6 +7,7 @@ import torch
 from conftest import CASES
 from torchsph.config import load_case
 from torchsph.fluid import embed
+from torchsph.neighbors import NeighbourTable
 from torchsph.runner import make_simulation, run_steps
 from torchsph.state import Phase
 from torchsph.thermal import conduction_pairs
@@ -170,7 +171,7 @@ def test_a_selection_reads_only_work_particles_with_a_table_row():
     drop = halo[:1]
     keep = table.rows[table.rows != drop]
     slot = table.slot.index_select(0, keep)
-    part = type(table)(keep, table.nb.index_select(0, slot), table.mask.index_select(0, slot), table.n)
+    part = NeighbourTable(keep, table.nb.index_select(0, slot), table.mask.index_select(0, slot), table.n)
     assert not bool(part.has_row()[drop]) and bool(work[drop])
     q_whole = th.heat_rate(st, st.T)
     th.select_pairs(st, part, active=act, work=work, x_ref=sim.nl.x_ref, new_table=True)

@@ -214,7 +214,9 @@ class Simulation:
         self.comm.begin_step(self)  # migration and new ghosts after a rebuild (decomposed runs)
         self.rebuilt = False
         self.T_prev = self.state.T
-        dt_t = torch.full((), dt, dtype=torch.float64, device=self.state.device)  # (a fill: no copy, no read)
+        def scalar(v: float) -> torch.Tensor:  # a 0-d tensor for the traced parts (a fill: no copy, no read)
+            return torch.full((), v, dtype=torch.float64, device=self.state.device)
+        dt_t = scalar(dt)
         v_half, v_tilde, rows0, H_half_r, inv = step.first_half(self, dt_t)  # 1a-1e
         T0 = self.T_prev
         H_half = None  # the whole array, made only where particles are added, removed or re-selected
@@ -252,8 +254,7 @@ class Simulation:
             self.refresh_pairs(force=True)
         damping = None  # the settling drag (numerics.damping_time_s)
         if self.fluid is not None and self.t + dt < self.damping_time:
-            damping = torch.full((), step_limits.damping_rate(self.damping_time, self.t + dt), dtype=torch.float64,
-                                 device=self.state.device)
+            damping = scalar(step_limits.damping_rate(self.damping_time, self.t + dt))
         step.close_momentum(self, dt_t, damping, v_half, v_tilde)  # 2, 3c
         ending = None
         if self.thermal is not None:  # the rows of the end's temperatures, and their h_{n+1/2}
@@ -264,8 +265,7 @@ class Simulation:
             else:
                 Hh = (whole_H_half() if H_half is None else H_half).index_select(0, rows)
             th.prepare(self.state)  # a new selection's cached values, outside the traced parts
-            t_end = torch.full((), self.t + dt, dtype=torch.float64, device=self.state.device)
-            ending = step.close_energy(self, dt_t, t_end, rows, Hh)  # 2, 3b
+            ending = step.close_energy(self, dt_t, scalar(self.t + dt), rows, Hh)  # 2, 3b
         self.t += dt
         self.step += 1
         flags = bookkeeping.finish_step(self, dt, ending)

@@ -1,12 +1,13 @@
-"""The two halves of a kick-drift-kick step that hold its arithmetic (SPEC §4), with no host
-read in either: :func:`first_half` (1a-1e: the half kick, the extrapolations, the density
-and the drift) and the second, :func:`close_momentum` then :func:`close_energy` (2 and 3:
-the rates at the end of the step and the closing half kicks; apart because the selection's
-cached conduction values are made between them, once per selection, eagerly). Between them the step reads the host once (the feed's contact, whether
-to rebuild, whether the extrapolated temperatures converged:
-:func:`torchsph.bookkeeping.mid_step_read`), and after the second once more (the measures,
-the next limits, the phase changes: :func:`torchsph.bookkeeping.finish_step`); particles
-enter and leave, and the pairs are rebuilt, only between them, at those reads.
+"""The parts of a kick-drift-kick step that hold its arithmetic (SPEC §4), with no host read
+in any: :func:`first_half` (1a-1e: the half kick, the extrapolations, the density and the
+drift), then :func:`close_momentum` and :func:`close_energy` (2 and 3: the rates at the end
+of the step and the closing half kicks; apart because the selection's cached conduction
+values are made between them, once per selection, eagerly). Between the first half and the
+rest the step reads the host once (the feed's contact, whether to rebuild, whether the
+extrapolated temperatures converged: :func:`torchsph.bookkeeping.mid_step_read`), and after
+the rest once more (the measures, the next limits, the phase changes:
+:func:`torchsph.bookkeeping.finish_step`); particles enter and leave, and the pairs are
+rebuilt, only at those reads.
 
 On a step between rebuilds each part has fixed shapes and no data-dependent branch, so
 ``torch.compile(fullgraph=True)`` traces each whole (tests/test_compile.py): the condition
@@ -20,6 +21,7 @@ import torch
 from . import rates
 from .bookkeeping import EndTemperatures
 from .state import Phase
+from .thermal import Inversion
 
 
 class Half(NamedTuple):
@@ -28,12 +30,13 @@ class Half(NamedTuple):
     v_tilde: torch.Tensor  # u_n + dt du/dt, for the viscous term at the end of the step (1b)
     rows0: torch.Tensor | None  # the integrated rows of the energy equation
     H_half_r: torch.Tensor | None  # h_{n+1/2} on rows0 (1d)
-    inv: object | None  # the extrapolated temperatures on rows0 (an Inversion, unchecked)
+    inv: Inversion | None  # the extrapolated temperatures on rows0 (unchecked)
 
 
 def first_half(sim, dt: torch.Tensor) -> Half:
-    """1a-1e (``dt``: a 0-d float64 tensor, so a traced half is not specialised to its value): half kick, extrapolated velocity and enthalpy (the temperatures of the rate
-    evaluation), density, drift (with shifting). Sets the state's T, rho and x."""
+    """1a-1e: half kick, extrapolated velocity and enthalpy (the temperatures of the rate
+    evaluation), density, drift (with shifting). Sets the state's T, rho and x. ``dt``: a
+    0-d float64 tensor, so a traced part is not specialised to its value."""
     s = sim.state
     fm = sim.fluid_mask.unsqueeze(-1)
     a = sim.dvdt  # zero for walls: they keep their prescribed velocity
@@ -84,8 +87,8 @@ def close_momentum(sim, dt: torch.Tensor, damping: torch.Tensor | None, v_half, 
 
 
 def close_energy(sim, dt: torch.Tensor, t_end: torch.Tensor, rows, H_half) -> EndTemperatures:
-    """2 and 3b at t_end (a 0-d tensor, as ``dt``): the heat per particle, its energy booked (trapezoid), and the end's
-    temperatures on ``rows`` from their half-step enthalpy ``H_half`` (put in unchecked: the
+    """2 and 3b at t_end (a 0-d tensor, as ``dt``): the heat per particle, its energy booked
+    (trapezoid), and the end's temperatures on ``rows`` from their half-step enthalpy ``H_half`` (put in unchecked: the
     end's read says whether Newton converged). After :func:`close_momentum` (the melt's
     walls take their densities there) and the selection's cached values
     (:meth:`~torchsph.thermal.Conduction.prepare`)."""

@@ -65,7 +65,7 @@ class Term:
     def select(self, sim) -> None:
         """After every pair selection (a neighbour rebuild, a phase change, a restore)."""
 
-    def heat(self, sim, t: float, rows: torch.Tensor) -> torch.Tensor:
+    def heat(self, sim, t: float | torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         """W per particle on ``rows`` (the conducting rows) at time ``t`` (in the step a 0-d
         tensor: decide on it with tensor operations, not ``if``, so the step stays one graph)."""
         raise NotImplementedError

@@ -72,7 +72,7 @@ class VolumetricHeating(Term):
     def select(self, sim) -> None:
         self.cp = sim.thermal.prm.specific_heat
 
-    def heat(self, sim, t, rows: torch.Tensor) -> torch.Tensor:
+    def heat(self, sim, t: float | torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         s = sim.state
         V = s.m.index_select(0, rows) / s.rho.index_select(0, rows)
         on = (t >= self.t_start) & (t < self.t_end)  # (t a 0-d tensor in the step: no branch on it)
