@@ -105,3 +105,17 @@ def box_source_rise(x: torch.Tensor, t: float, lo, hi, alpha: float, rho_cp: flo
             f = f + slab(2 * e0 - hi[a], 2 * e0 - lo[a]) + slab(2 * e1 - hi[a], 2 * e1 - lo[a])
         prod = prod * f
     return q / rho_cp * (prod * w).sum(1)
+
+
+def circular_cap(size: float, theta: float, dim: int = 2) -> dict:
+    """The circular cap (2-D: a circle's segment of area ``size``; 3-D: a sphere's cap of
+    volume ``size``) that meets a flat plate at the contact angle ``theta`` (rad), valid below
+    the capillary length (SPEC 3b): radius R, base width W = 2 R sin(theta), height
+    H = R (1 - cos(theta)); 2-D area R^2 (theta - sin(theta) cos(theta)), 3-D volume
+    pi R^3 (2 - 3 cos(theta) + cos^3(theta)) / 3."""
+    c = math.cos(theta)
+    if dim == 2:
+        R = math.sqrt(size / (theta - math.sin(theta) * c))
+    else:
+        R = (3.0 * size / (math.pi * (2.0 - 3.0 * c + c**3))) ** (1.0 / 3.0)
+    return {"R": R, "W": 2.0 * R * math.sin(theta), "H": R * (1.0 - c)}

@@ -256,6 +256,52 @@ def build_drop(cfg, dtype, device) -> Scene:
     return Scene(st, Domain([-span] * d, [span] * d, [False] * d), dx, {"R": R, "side": n * dx})
 
 
+def build_sessile_drop(cfg, dtype, device) -> Scene:
+    """A liquid cap on a flat plate: the plate's top face at the last axis = 0, centred on the
+    origin; the cap is the part above the plate of a disc/ball of radius ``radius_m`` whose
+    centre lies at -R cos(initial_angle) (90 deg: a half disc / hemisphere)."""
+    sc, fl = cfg["scene"], cfg["fluid"]
+    d, dx, R = sc["dim"], sc["dx_m"], sc["radius_m"]
+    layers = sc["wall_layers"]
+    width = sc["plate_width_m"] if sc["plate_width_m"] is not None else 7.0 * R
+    nw = 2 * max(round(width / (2 * dx)), 1)  # even: the lattice is symmetric about 0
+    zc = -R * math.cos(math.radians(sc["initial_angle_deg"]))
+    top = R + zc
+    nz = max(round(top / dx), 1)
+    xf = lattice([nw] * (d - 1) + [nz], dx, origin=[-nw * dx / 2] * (d - 1) + [0.0], dtype=dtype, device=device)
+    centre = torch.zeros(d, dtype=dtype, device=device)
+    centre[-1] = zc
+    xf = xf[((xf - centre) ** 2).sum(-1) < R * R]
+    xw = lattice([nw] * (d - 1) + [layers], dx, origin=[-nw * dx / 2] * (d - 1) + [-layers * dx],
+                 dtype=dtype, device=device)
+    rho0 = fl["rho0_kg_m3"]
+    drop = ParticleState.create(xf, torch.zeros_like(xf), rho0, rho0 * dx**d, Phase.FLUID,
+                                T=fl["temperature_K"], dtype=dtype, device=device)
+    phase = Phase.SOLID if sc["plate"] == "solid" else Phase.WALL
+    plate = solid_block(xw, fl, dx, d, fl["temperature_K"], dtype, device, id0=xf.shape[0], phase=phase)
+    if phase == Phase.SOLID:
+        plate.body[:] = 1
+    half = nw * dx / 2
+    height = max(3.0 * R, 2.0 * top)
+    lo = [-half] * (d - 1) + [-layers * dx]
+    hi = [half] * (d - 1) + [height]
+    volume = xf.shape[0] * dx**d
+    return Scene(ParticleState.cat([drop, plate]), Domain(lo, hi, [False] * d), dx,
+                 {"R": R, "volume": volume, "plate_top": 0.0})
+
+
+def check_sessile_drop(cfg):
+    _need_wall_layers(cfg)
+    sc = cfg["scene"]
+    if sc["radius_m"] < 4 * sc["dx_m"]:
+        raise CaseError(f"[scene] radius_m = {sc['radius_m']:g}: must be >= 4 dx_m = {4 * sc['dx_m']:g} "
+                        "(a cap needs a few particles across)")
+    width = sc["plate_width_m"]
+    if width is not None and width < 2 * sc["radius_m"]:
+        raise CaseError(f"[scene] plate_width_m = {width:g}: must be >= the drop's diameter "
+                        f"2 radius_m = {2 * sc['radius_m']:g}")
+
+
 SCENES: dict[str, SceneSpec] = {
     "taylor_green": SceneSpec(
         {"length_m": Key("float", default=1.0, gt=0, doc="side of the periodic box"),
@@ -308,6 +354,16 @@ SCENES: dict[str, SceneSpec] = {
          "shape": Key("str", default="ball", choices=("ball", "box"), doc="disc/ball or square/cube"),
          "mode2_velocity_m_s": Key("float", default=0.0, doc="initial mode-2 velocity amplitude U0")},
         (3, 2), build_drop, None, "free liquid drop (surface-tension studies)"),
+    "sessile_drop": SceneSpec(
+        {"radius_m": Key("float", gt=0, doc="radius of the initial cap's circle (sphere in 3-D)"),
+         "dx_m": Key("float", gt=0, doc="particle spacing"),
+         "initial_angle_deg": Key("float", default=90.0, gt=0, lt=180,
+                                  doc="contact angle of the initial cap (90: a half disc / hemisphere)"),
+         "plate_width_m": Key("float", default=None, gt=0, doc="side of the plate (default 7 radius_m)"),
+         "plate": Key("str", default="wall", choices=("wall", "solid"),
+                      doc="plate particles: rigid walls, or rigid solid (conducts heat with [thermal])"),
+         "wall_layers": Key("int", default=3, ge=1, doc="layers of plate particles")},
+        (2, 3), build_sessile_drop, check_sessile_drop, "liquid cap resting on a flat plate (wetting)"),
     "deposition": SceneSpec(
         {"substrate_size_m": Key("vec", doc="substrate block (x travel, y width, z thickness)"),
          "dx_m": Key("float", gt=0, doc="particle spacing"),

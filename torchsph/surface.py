@@ -33,6 +33,7 @@ from .neighbors import Domain
 from .state import ParticleState, Phase
 from .free_surface import ColourGradient
 from .thermal import flat_surface_layers
+from .wetting import ContactAngle
 
 
 @dataclass
@@ -44,6 +45,7 @@ class SurfaceParams:
     recoil: bool = False  # recoil pressure p_v(T) (needs a vapour-pressure law)
     threshold: float = 0.05  # |grad c| h above which a particle belongs to the surface
     zero_net_force: bool = False  # remove the discrete forces' net resultant (a free body only)
+    contact_angle: float | None = None  # theta_eq between melt and solid, deg (None: no wetting model)
 
 
 def gradient_moments(x, f, w, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
@@ -116,6 +118,8 @@ class SurfaceForces:
         self.n_surface = 0
         # the colour gradient, shared with the surface losses when both exist (one per step)
         self.colour = colour if colour is not None else ColourGradient(kernel, h, domain, params.threshold, compile)
+        self.wetting = None if params.contact_angle is None else ContactAngle(
+            params.contact_angle, kernel, h, domain, params.threshold)
         self._fns = {"moments": gradient_moments, "smooth": smoothed_pairs}
         if compile:  # the pair sums fuse; the batched d x d solves stay eager
             self._fns = {k: torch.compile(f, dynamic=True) for k, f in self._fns.items()}
@@ -131,6 +135,8 @@ class SurfaceForces:
         self.nb_f, self.mask_f = table.gather(self.rows_f, within=True)
         self.fluid = fluid
         self.colour.want("surface", self.rows_f, table)
+        if self.wetting is not None:
+            self.wetting.select(state, self.nb_f, self.mask_f)
 
     def tension(self, T: torch.Tensor) -> torch.Tensor:
         prm = self.prm
@@ -156,6 +162,9 @@ class SurfaceForces:
         parts = {}
         gns = torch.where(on, gn, torch.ones_like(gn))
         n_out = -g / gns.unsqueeze(-1) * onf
+        band = None
+        if self.wetting is not None:  # the contact band: the melt's surface next to the solid
+            band = self.wetting.contact_band(state, rows, nb, g, on)
         self.normal.index_copy_(0, rows, n_out)
         flag = torch.zeros_like(rho).index_copy_(0, rows, on.to(rho.dtype))  # surface fluid particles
         # force per unit mass = (force per area) x A_i / m_i = (force per area) |grad c| / (rho D)
@@ -173,10 +182,19 @@ class SurfaceForces:
             kappa = torch.diagonal(gradn, dim1=-2, dim2=-1).sum(-1)
             kappa = kappa / (1.0 + self.band_depth * kappa / (d - 1)).clamp_min(0.5)
             kappa = torch.where(on, kappa, torch.zeros_like(kappa))
+            if band is not None:  # the contact band: Young's force instead (its normals blend
+                # the melt's surface with the solid's, and its curvature is no surface's)
+                kappa = torch.where(band, torch.zeros_like(kappa), kappa)
             self.kappa.index_copy_(0, rows, kappa)
             alpha = self.tension(state.T.index_select(0, rows))
             parts["surface_tension"] = -(alpha * kappa).unsqueeze(-1) * n_out * per_area
             a = a + parts["surface_tension"]
+            if band is not None:
+                surf = torch.zeros_like(self.fluid).index_copy_(0, rows, on)
+                F = self.wetting.force(state, rows, nb, self.mask_f.to(rho.dtype), nfield, self.kappa, surf,
+                                        alpha)
+                parts["contact_line"] = F / m.index_select(0, rows).unsqueeze(-1)
+                a = a + parts["contact_line"]
         if self.marangoni_on:
             material = (state.phase != Phase.WALL).to(rho.dtype)
             gT = solve_gradient(*self._fns["moments"](x, state.T, material, m, rho, rows, nb,

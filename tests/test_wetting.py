@@ -1,0 +1,126 @@
+"""Wetting (SPEC 3b): a 2-D liquid cap on a plate settles at the contact angle it is given,
+a cap at its equilibrium stays at rest, and the contact-line force's reaction on the solid
+balances it to round-off."""
+import math
+
+import pytest
+import torch
+
+from torchsph.caps import contact_angle, fit_sphere
+from torchsph.config import CaseError, load_case
+from torchsph.runner import make_simulation, run_steps
+from torchsph.state import Phase
+
+from conftest import CASES
+
+torch.set_num_threads(1)  # these scenes are small: threads only add overhead
+
+# sigma / eta = 1 m/s; the settling drag ends at 10 ms; dx = R / 15
+COMMON = ["fluid.viscosity_Pa_s=0.05", "numerics.damping_time_s=0.01", "scene.dx_m=3.3333e-5"]
+
+
+def settle(theta, theta0, radius, t_end=0.020, t_from=0.014):
+    """Run the 2-D cap from ``theta0`` with theta_eq = ``theta``; the contact angle (deg) and
+    the centre-of-mass speed of the melt (m/s), each sampled every ms from ``t_from``."""
+    _, cfg = load_case(CASES / "sessile_drop_2d", COMMON + [
+        f"surface.contact_angle_deg={theta}", f"scene.initial_angle_deg={theta0}",
+        f"scene.radius_m={radius}", f"run.t_end_s={t_end}"])
+    scene, sim = make_simulation(cfg)
+    angles, speeds = [], []
+    k = round(t_from * 1e3)
+    while k <= round(t_end * 1e3) + 1e-9:
+        run_steps(sim, t_end=k * 1e-3)
+        angles.append(contact_angle(sim.state, scene.dx)["angle_deg"])
+        s = sim.state
+        fl = s.phase == Phase.FLUID
+        speeds.append(float(((s.m[fl, None] * s.v[fl]).sum(0) / s.m[fl].sum()).norm()))
+        k += 1
+    return angles, speeds
+
+
+PINNED = ("measured 37.1 deg at 20 ms (dx = R/30): the line stops where Young's drive "
+          "alpha (cos theta_eq - cos theta) falls to about 0.05 alpha, the same residual as the 60 deg "
+          "cap's 63 deg, which at 30 deg (d cos / d theta = sin theta = 0.5) is 7 deg")
+
+
+@pytest.mark.parametrize("theta,theta0,radius", [
+    pytest.param(30.0, 45.0, 1e-3, marks=[pytest.mark.slow, pytest.mark.xfail(reason=PINNED, strict=True)]),
+    (60.0, 75.0, 5e-4), (90.0, 75.0, 5e-4), (120.0, 105.0, 5e-4)])
+def test_sessile_drop_2d_settles_at_the_contact_angle(theta, theta0, radius):
+    """A cap started 15 deg off theta_eq (30 and 60 deg spread, 90 and 120 deg draw in) settles
+    at theta_eq within 5 deg: the mean of the fitted angle from 14 to 20 ms (after the settling
+    drag ends at 10 ms), and every sample within 8 deg. 30 deg does not yet (slow, expected to
+    fail: see PINNED)."""
+    angles, _ = settle(theta, theta0, radius)
+    mean = sum(angles) / len(angles)
+    print(f"theta_eq {theta}: from {theta0}, mean {mean:.2f}, samples {[round(a, 1) for a in angles]}")
+    assert abs(mean - theta) < 5.0
+    assert max(abs(a - theta) for a in angles) < 8.0
+
+
+def test_a_cap_at_its_contact_angle_stays_at_rest():
+    """A 60 deg cap on a plate with no gravity, started at 60 deg: after the settling time its
+    centre of mass moves at < 1e-3 of the capillary speed sigma / eta (no self-propulsion)."""
+    angles, speeds = settle(60.0, 60.0, 5e-4, t_end=0.016, t_from=0.012)
+    print(f"angles {[round(a, 1) for a in angles]}, centre-of-mass speeds {speeds}")
+    assert max(speeds) < 1e-3 * (0.05 / 0.05)
+    assert abs(sum(angles) / len(angles) - 60.0) < 5.0
+
+
+def test_the_wetting_force_and_its_reaction_sum_to_zero():
+    """The contact-line force on the melt (spread over the melt near the line) and its reaction
+    booked on the plate sum to zero to round-off, in each direction, on a cap that is not at
+    its angle (the force is not small); the reaction sits on plate particles only."""
+    _, cfg = load_case(CASES / "sessile_drop_2d", COMMON + ["surface.contact_angle_deg=30.0"])
+    scene, sim = make_simulation(cfg)
+    run_steps(sim, steps=50)
+    _, parts = sim.surface.accelerations(sim.state, terms=True)
+    s = sim.state
+    F = s.m.unsqueeze(-1) * parts["contact_line"]
+    R = sim.surface.wetting.reaction
+    scale = float(F.abs().sum())
+    assert scale > 0
+    fluid = s.phase == Phase.FLUID
+    assert float(R[fluid].abs().max()) == 0.0 and float(F[~fluid].abs().max()) == 0.0
+    total = (F.sum(0) + R.sum(0)).abs().max()
+    print(f"sum |F| = {scale:.3e} N/m, |sum F + sum R| = {float(total):.2e}")
+    assert float(total) < 1e-13 * scale
+    # the line is pulled outwards (30 deg < 90 deg): each side's force points away from the axis
+    right = fluid & (s.x[:, 0] > 0)
+    assert float(F[right, 0].sum()) > 0 and float(F[fluid & (s.x[:, 0] < 0), 0].sum()) < 0
+
+
+def test_contact_angle_fit_recovers_a_lattice_cap():
+    """The measurement: a lattice cap cut at 60 deg (R = 20 dx) reads 60 deg within 2 deg; the
+    sphere fit is exact on points of a circle."""
+    _, cfg = load_case(CASES / "sessile_drop_2d", ["scene.initial_angle_deg=60.0"])
+    scene, _ = make_simulation(cfg)
+    ca = contact_angle(scene.state, scene.dx)
+    assert abs(ca["angle_deg"] - 60.0) < 2.0, ca
+    phi = torch.linspace(0.1, 3.0, 40, dtype=torch.float64)
+    pts = torch.stack([1.0 + 2.0 * torch.cos(phi), -0.5 + 2.0 * torch.sin(phi)], dim=1)
+    c, R = fit_sphere(pts)
+    assert abs(R - 2.0) < 1e-12 and float((c - torch.tensor([1.0, -0.5], dtype=torch.float64)).abs().max()) < 1e-12
+
+
+@pytest.mark.parametrize("over,match", [
+    (["surface.contact_angle_deg=180.0"], r"contact_angle_deg"),
+    (["surface.contact_angle_deg=0.0"], r"contact_angle_deg"),
+    (["scene.radius_m=5e-5"], r"radius_m"),
+    (["scene.plate_width_m=2e-4"], r"plate_width_m"),
+])
+def test_wetting_case_errors(over, match):
+    with pytest.raises(CaseError, match=match):
+        load_case(CASES / "sessile_drop_2d", over)
+
+
+def test_circular_cap_relations():
+    """SPEC 3b's numbers: A = 2.26 mm^2 at 30 deg gives W 5.00 / H 0.67 mm, at 90 deg 2.40 / 1.20."""
+    from torchsph.analytic import circular_cap
+
+    c30 = circular_cap(2.26e-6, math.radians(30.0), 2)
+    c90 = circular_cap(2.26e-6, math.radians(90.0), 2)
+    assert c30["W"] == pytest.approx(5.00e-3, abs=0.01e-3) and c30["H"] == pytest.approx(0.67e-3, abs=0.01e-3)
+    assert c90["W"] == pytest.approx(2.40e-3, abs=0.01e-3) and c90["H"] == pytest.approx(1.20e-3, abs=0.01e-3)
+    v = circular_cap(4.0 / 3.0 * math.pi, math.radians(90.0), 3)  # a hemisphere of radius 2^(1/3)
+    assert v["R"] == pytest.approx(2.0 ** (1.0 / 3.0), rel=1e-12)

@@ -1,0 +1,50 @@
+"""Measuring a liquid cap on a flat plate: its contact angle, from a circle (2-D) or sphere
+(3-D) fitted to its free surface away from the plate, with the fitted radius and centre."""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .state import ParticleState, Phase
+
+
+def surface_particles(x: torch.Tensor, others: torch.Tensor, dx: float, chunk: int = 4096) -> torch.Tensor:
+    """Mask of the particles ``x`` on their body's free surface: fewer than 80 % of the
+    median count of particles (``x`` and ``others``, e.g. the plate) within 2 dx."""
+    pts = torch.cat([x, others])
+    counts = torch.cat([(torch.cdist(x[k:k + chunk], pts) < 2.0 * dx).sum(1)
+                        for k in range(0, x.shape[0], chunk)])
+    return counts < 0.8 * counts.median()
+
+
+def fit_sphere(p: torch.Tensor):
+    """Least-squares circle/sphere |p - c|^2 = R^2 through the points ``p`` (n, d) (the
+    algebraic fit: linear in c and R^2 - |c|^2): (centre, R)."""
+    A = torch.cat([2.0 * p, torch.ones_like(p[:, :1])], dim=1)
+    b = (p * p).sum(1, keepdim=True)
+    sol = torch.linalg.lstsq(A, b).solution.squeeze(1)
+    c = sol[:-1]
+    return c, math.sqrt(float(sol[-1] + (c * c).sum()))
+
+
+def contact_angle(state: ParticleState, dx: float, plate_top: float = 0.0, clearance: float = 2.0) -> dict:
+    """The contact angle (deg) of the fluid resting on a plate whose top face is at
+    ``plate_top`` on the last axis: a circle/sphere fitted to the fluid's surface particles
+    more than ``clearance`` dx above the plate; the surface lies dx/2 outside the outermost
+    particles' centres, so the surface's radius is the fit's plus dx/2, and
+    cos(theta) = (plate_top - z_centre) / R. Also the fit's radius, its centre, and the
+    number of surface points."""
+    fluid = state.phase == Phase.FLUID
+    x = state.x[fluid].double()
+    surf = surface_particles(x, state.x[~fluid].double(), dx)
+    pts = x[surf & (x[:, -1] > plate_top + clearance * dx)]
+    if pts.shape[0] < state.dim + 2:
+        raise ValueError(f"contact_angle: {pts.shape[0]} surface points above the plate, too few to fit")
+    c, R = fit_sphere(pts)
+    R = R + 0.5 * dx
+    cos_t = max(-1.0, min(1.0, (plate_top - float(c[-1])) / R))
+    return {"angle_deg": math.degrees(math.acos(cos_t)), "R": R, "centre": c.tolist(), "points": int(pts.shape[0])}
+
+
+__all__ = ["contact_angle", "fit_sphere", "surface_particles"]
