@@ -173,7 +173,11 @@ class SurfaceForces:
         if prm.tension > 0 or prm.dtension_dT != 0.0:
             # kernel-smoothed normals: on a lattice staircase the raw ones turn at the
             # corners and overstate kappa there by 30-90 % (10-40 % once smoothed)
-            nsm = self._fns["smooth"](x, self.normal, flag, m, rho, rows, nb, self.mask_f.to(rho.dtype),
+            flag_s = flag
+            if band is not None:  # the band's normals blend in the solid's: not smoothed into
+                # the surface beside it, whose normals read the contact angle
+                flag_s = flag.index_copy(0, rows, (on & ~band).to(rho.dtype))
+            nsm = self._fns["smooth"](x, self.normal, flag_s, m, rho, rows, nb, self.mask_f.to(rho.dtype),
                                       self.kernel, self.h, self.domain)
             nsm = nsm / nsm.norm(dim=-1, keepdim=True).clamp_min(1e-30) * onf
             nfield = torch.zeros_like(x).index_copy_(0, rows, nsm)  # (read at surface rows only)
@@ -182,19 +186,25 @@ class SurfaceForces:
             kappa = torch.diagonal(gradn, dim1=-2, dim2=-1).sum(-1)
             kappa = kappa / (1.0 + self.band_depth * kappa / (d - 1)).clamp_min(0.5)
             kappa = torch.where(on, kappa, torch.zeros_like(kappa))
-            if band is not None:  # the contact band: Young's force instead (its normals blend
-                # the melt's surface with the solid's, and its curvature is no surface's)
+            if band is not None:  # the contact band's own normals blend the melt's surface with
+                # the solid's, and its curvature is no surface's: set from beside it (below)
                 kappa = torch.where(band, torch.zeros_like(kappa), kappa)
             self.kappa.index_copy_(0, rows, kappa)
             alpha = self.tension(state.T.index_select(0, rows))
-            parts["surface_tension"] = -(alpha * kappa).unsqueeze(-1) * n_out * per_area
-            a = a + parts["surface_tension"]
+            n_f = n_out
             if band is not None:
                 surf = torch.zeros_like(self.fluid).index_copy_(0, rows, on)
                 F = self.wetting.force(state, rows, nb, self.mask_f.to(rho.dtype), nfield, self.kappa, surf,
                                         alpha)
                 parts["contact_line"] = F / m.index_select(0, rows).unsqueeze(-1)
                 a = a + parts["contact_line"]
+                # the band carries the tension of the surface beside it (the Laplace balance
+                # down to the solid), with that surface's curvature and normal
+                kappa = torch.where(band, self.wetting.k_band, kappa)
+                n_f = torch.where(band.unsqueeze(-1), self.wetting.n_band, n_out)
+                self.kappa.index_copy_(0, rows, kappa)
+            parts["surface_tension"] = -(alpha * kappa).unsqueeze(-1) * n_f * per_area
+            a = a + parts["surface_tension"]
         if self.marangoni_on:
             material = (state.phase != Phase.WALL).to(rho.dtype)
             gT = solve_gradient(*self._fns["moments"](x, state.T, material, m, rho, rows, nb,
