@@ -394,7 +394,8 @@ class SlabComm:
 
 def make_comm(cfg: dict, comm=None) -> SlabComm:
     """A SlabComm for a validated case: the halo spans the neighbour-dependent stages of one
-    step (3 search radii; 5 with free-surface forces) plus the Verlet skin."""
+    step (3 search radii; 5 with free-surface forces, 7 with a contact angle) plus the Verlet
+    skin."""
     from torchsph.kernels import make_kernel
 
     nm = cfg["numerics"]
@@ -405,6 +406,10 @@ def make_comm(cfg: dict, comm=None) -> SlabComm:
     h = nm["h_over_dx"] * dx
     kernel = make_kernel(nm["kernel"], cfg["scene"]["dim"])
     skin = nm["skin_over_dx"] * dx
-    stages = 5 if "surface" in cfg else 3
+    stages = 3
+    if "surface" in cfg:  # colour -> normals -> smoothed normals -> curvature -> force
+        stages = 5
+        if cfg["surface"].get("contact_angle_deg") is not None:
+            stages = 7  # the contact line reads the curvature beside it, and spreads its force
     return SlabComm(kernel.radius(h) + skin, skin, stages=stages, comm=comm,
                     rebalance_every=nm.get("rebalance_every", 0))

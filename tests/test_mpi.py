@@ -27,6 +27,9 @@ FLUID = (ROOT / "cases" / "hydrostatic_tank_3d", ["fluid.body_force_m_s2=[3.0, 0
 THERMAL = (ROOT / "cases" / "stefan_1d", [], 150)
 # an oscillating drop: surface tension (normals, curvature) across the slab boundary
 SURFACE = (ROOT / "cases" / "oscillating_drop_2d", [], 150)
+# a cap spreading on a plate: the contact line (wetting) across the slab boundary at x = 0
+WETTING = (ROOT / "cases" / "sessile_drop_2d", ["surface.contact_angle_deg=30.0", "scene.dx_m=5e-5",
+                                                 "scene.initial_angle_deg=60.0"], 600)
 # the deposition scene, small: two beams (global shadowing), the fed wire (layers inserted on
 # the owning rank, copied as ghosts), the active set, melting; the slab boundary cuts the wire
 DEPOSITION = (ROOT / "cases" / "perpendicular_350W",
@@ -59,11 +62,11 @@ def rel(a, b):
     return float(np.abs(a - b).max()) / scale
 
 
-@pytest.mark.parametrize("which", ["fluid", "thermal", "surface", "deposition", "stall"])
+@pytest.mark.parametrize("which", ["fluid", "thermal", "surface", "wetting", "deposition", "stall"])
 def test_decomposed_run_equals_single_process(tmp_path, which):
     """After K steps on 2 and 3 ranks the state gathered by id equals the single-process run to
     1e-10 relative (float64); particle count and total mass are exactly conserved."""
-    case, ov, K = {"fluid": FLUID, "thermal": THERMAL, "surface": SURFACE, "deposition": DEPOSITION,
+    case, ov, K = {"fluid": FLUID, "thermal": THERMAL, "surface": SURFACE, "wetting": WETTING, "deposition": DEPOSITION,
                    "stall": STALL}[which]
     ref, sim = serial(case, ov, K)
     if which == "stall":

@@ -56,6 +56,19 @@ def test_half_cylinder_bead_on_a_block():
     assert abs(b["height_m"] - R) <= DX
     assert abs(b["penetration_m"] - P) <= DX
     assert abs(b["added_area_m2"] / (math.pi * R * R / 2) - 1) < 0.05
+    assert abs(b["toe_angle_deg"] - 90.0) < 5.0  # a half cylinder meets the top at 90 deg
+
+
+def test_toe_angle_of_a_circular_segment_bead():
+    """A bead cut from a cylinder of radius 1.2 mm whose axis lies 0.6 mm below the top (a
+    circular segment meeting the top at 60 deg): the toe angle within 4 deg."""
+    Rc, zc = 1.2e-3, -0.6e-3
+    block = lattice((0, -1.5e-3, -1e-3), (4e-3, 1.5e-3, 0))
+    cand = lattice((0, -Rc, 0), (4e-3, Rc, Rc))
+    bead = cand[cand[:, 1] ** 2 + (cand[:, 2] - zc) ** 2 < Rc * Rc]
+    prof = post.bead_profile(snap_of(np.concatenate([block, bead])), cfg_of([4e-3, 3e-3, 1e-3]))
+    b = post.steady_average(prof, 0.5e-3, 3.5e-3)
+    assert abs(b["toe_angle_deg"] - 60.0) < 4.0, b
 
 
 def test_bead_columns_stay_on_the_lattice_with_spatter_far_away():

@@ -6,6 +6,7 @@ import math
 import pytest
 import torch
 
+from torchsph import caps
 from torchsph.caps import contact_angle, fit_sphere
 from torchsph.config import CaseError, load_case
 from torchsph.runner import make_simulation, run_steps
@@ -20,22 +21,12 @@ COMMON = ["fluid.viscosity_Pa_s=0.05", "numerics.damping_time_s=0.01", "scene.dx
 
 
 def settle(theta, theta0, radius, t_end=0.020, t_from=0.014):
-    """Run the 2-D cap from ``theta0`` with theta_eq = ``theta``; the contact angle (deg) and
-    the centre-of-mass speed of the melt (m/s), each sampled every ms from ``t_from``."""
-    _, cfg = load_case(CASES / "sessile_drop_2d", COMMON + [
+    """The 2-D cap from ``theta0`` with theta_eq = ``theta``: the fitted contact angles (deg) and
+    the melt's centre-of-mass speeds (m/s), every ms from ``t_from``."""
+    r = caps.settle(CASES / "sessile_drop_2d", COMMON + [
         f"surface.contact_angle_deg={theta}", f"scene.initial_angle_deg={theta0}",
-        f"scene.radius_m={radius}", f"run.t_end_s={t_end}"])
-    scene, sim = make_simulation(cfg)
-    angles, speeds = [], []
-    k = round(t_from * 1e3)
-    while k <= round(t_end * 1e3) + 1e-9:
-        run_steps(sim, t_end=k * 1e-3)
-        angles.append(contact_angle(sim.state, scene.dx)["angle_deg"])
-        s = sim.state
-        fl = s.phase == Phase.FLUID
-        speeds.append(float(((s.m[fl, None] * s.v[fl]).sum(0) / s.m[fl].sum()).norm()))
-        k += 1
-    return angles, speeds
+        f"scene.radius_m={radius}"], t_from, t_end)
+    return r["angles"], r["speeds"]
 
 
 @pytest.mark.parametrize("theta,theta0,radius", [(30.0, 45.0, 1e-3), (60.0, 75.0, 5e-4),
@@ -55,15 +46,9 @@ def test_sessile_drop_2d_settles_at_the_contact_angle(theta, theta0, radius):
 def settle_3d(theta, theta0, radius, dx, t_end=0.020, t_from=0.014):
     """The 3-D cap of ``cases/sessile_drop_3d`` (settling drag to 10 ms): the fitted contact
     angles (deg) every ms from ``t_from``."""
-    _, cfg = load_case(CASES / "sessile_drop_3d", [
+    return caps.settle(CASES / "sessile_drop_3d", [
         f"surface.contact_angle_deg={theta}", f"scene.initial_angle_deg={theta0}",
-        f"scene.radius_m={radius}", f"scene.dx_m={dx}", f"run.t_end_s={t_end}"])
-    scene, sim = make_simulation(cfg)
-    angles = []
-    for k in range(round(t_from * 1e3), round(t_end * 1e3) + 1):
-        run_steps(sim, t_end=k * 1e-3)
-        angles.append(contact_angle(sim.state, scene.dx)["angle_deg"])
-    return angles
+        f"scene.radius_m={radius}", f"scene.dx_m={dx}"], t_from, t_end)["angles"]
 
 
 @pytest.mark.slow

@@ -137,9 +137,10 @@ def detached(snap: dict, dx: float, among: np.ndarray | None = None) -> np.ndarr
 def bead_profile(snap: dict, cfg: dict, T_liquidus: float | None = None, x0=None, vol=None) -> dict:
     """Bead geometry per substrate-frame column of width dx: width (y extent of the material
     above the original top z = 0), height (top of that material), penetration (depth below
-    z = 0 of the fusion line: the deepest particle whose peak temperature passed T_L), and
-    the added cross-section (volume above the top minus the substrate volume missing below
-    it, per unit length). The solid wire is not part of the deposit, nor is material above
+    z = 0 of the fusion line: the deepest particle whose peak temperature passed T_L), the
+    added cross-section (volume above the top minus the substrate volume missing below
+    it, per unit length), and the toe angle of the circular segment of that width and
+    height (tan(theta / 2) = 2 H / W; SPEC 3b). The solid wire is not part of the deposit, nor is material above
     the top that is not attached to the substrate (:func:`detached`: spatter, drops in flight)."""
     sc = cfg["scene"]
     dx = sc["dx_m"]
@@ -185,15 +186,18 @@ def bead_profile(snap: dict, cfg: dict, T_liquidus: float | None = None, x0=None
     else:
         full = np.median(v_below[v_below > 0])
     area = (v_above - np.maximum(full - v_below, 0.0)) / dx
+    # the toe (contact) angle of the circular segment of that width and height (SPEC 3b):
+    # tan(theta / 2) = 2 H / W
+    toe = np.degrees(2.0 * np.arctan2(2.0 * height, np.where(width > 0, width, np.inf)))
     return {"x0_m": centres, "width_m": width, "height_m": height, "penetration_m": pen,
-            "added_area_m2": area}
+            "added_area_m2": area, "toe_angle_deg": toe}
 
 
 def steady_average(profile: dict, x_lo: float, x_hi: float) -> dict:
     """Mean of each bead measure over the columns with x_lo <= x0 <= x_hi."""
     sel = (profile["x0_m"] >= x_lo) & (profile["x0_m"] <= x_hi)
     out = {"x_range_m": [x_lo, x_hi], "columns": int(sel.sum())}
-    for key in ("width_m", "height_m", "penetration_m", "added_area_m2"):
+    for key in ("width_m", "height_m", "penetration_m", "added_area_m2", "toe_angle_deg"):
         out[key] = float(profile[key][sel].mean()) if sel.any() else float("nan")
     return out
 
@@ -544,7 +548,8 @@ def main(argv=None):
         else:
             print(f"bead over x0 in [{b['x_range_m'][0] * 1e3:.2f}, {b['x_range_m'][1] * 1e3:.2f}] mm "
                   f"({b['columns']} columns): width {b['width_m'] * 1e3:.3f} mm, height {b['height_m'] * 1e3:.3f} mm, "
-                  f"penetration {b['penetration_m'] * 1e3:.3f} mm, added area {b['added_area_m2'] * 1e6:.3f} mm^2")
+                  f"penetration {b['penetration_m'] * 1e3:.3f} mm, added area {b['added_area_m2'] * 1e6:.3f} mm^2, "
+                  f"toe angle {b['toe_angle_deg']:.1f} deg (circular segment)")
         st = res["bead_settling"]
         if "error" in st:
             print(f"bead settling: not yet measurable ({st['error']})")

@@ -34,12 +34,14 @@ from torchsph.state import ParticleState, Phase  # noqa: E402
 SIGMA, RHO, R_DROP, D_WIRE = 0.05, 1000.0, 1.0e-3, 1.0e-3
 
 
-def detaches(alpha: float, dx: float, t_end: float, compile: bool) -> tuple[bool, float]:
+def detaches(alpha: float, dx: float, t_end: float, compile: bool, angle: float | None = None) -> tuple[bool, float]:
     mass = RHO * 4.0 / 3.0 * math.pi * R_DROP**3
     g = SIGMA * math.pi * D_WIRE / mass
     over = [f"scene.dx_m={dx}", f"scene.size_m={2 * R_DROP}", f"surface.tension_N_m={alpha}",
             f"fluid.gravity_m_s2=[0.0, 0.0, {-g}]", "numerics.damping_time_s=0.0",
             f"run.t_end_s={t_end}", f"numerics.compile={'true' if compile else 'false'}"]
+    if angle is not None:  # the wetting model between the melt and the wire (SPEC 3b)
+        over.append(f"surface.contact_angle_deg={angle}")
     _, cfg = load_case(ROOT / "cases" / "static_drop_3d", over)
     scene = build_scene(cfg)
     drop = scene.state
@@ -70,6 +72,10 @@ def main():
     ap.add_argument("--iterations", type=int, default=5)
     ap.add_argument("--t-end", type=float, default=0.03)
     ap.add_argument("--compile", action="store_true")
+    ap.add_argument("--contact-angle", type=float, default=None,
+                    help="theta_eq between drop and wire (deg; default: no wetting model)")
+    ap.add_argument("--alpha", type=float, nargs="*", default=None,
+                    help="only try these alpha / sigma (no bisection)")
     args = ap.parse_args()
     print(f"sigma = {SIGMA} N/m, drop R = {R_DROP * 1e3} mm, wire d = {D_WIRE * 1e3} mm, "
           f"g = sigma pi d / m = {SIGMA * math.pi * D_WIRE / (RHO * 4 / 3 * math.pi * R_DROP**3):.2f} m/s^2")
@@ -77,15 +83,21 @@ def main():
     print("|---|---|---|---|---|")
     results = []
     for dx in args.dx:
+        if args.alpha:
+            for a in args.alpha:
+                t0 = time.perf_counter()
+                det, fall = detaches(a * SIGMA, dx, args.t_end, args.compile, args.contact_angle)
+                print(f"| {dx * 1e3:.3f} | {a:.3f} | {det} | {fall * 1e3:.2f} | {time.perf_counter() - t0:.0f} |", flush=True)
+            continue
         lo, hi = 0.25, 4.0  # alpha / sigma: detaches at lo, holds at hi (checked below)
         for a in (lo, hi):
             t0 = time.perf_counter()
-            det, fall = detaches(a * SIGMA, dx, args.t_end, args.compile)
+            det, fall = detaches(a * SIGMA, dx, args.t_end, args.compile, args.contact_angle)
             print(f"| {dx * 1e3:.3f} | {a:.3f} | {det} | {fall * 1e3:.2f} | {time.perf_counter() - t0:.0f} |", flush=True)
         for _ in range(args.iterations):
             mid = math.sqrt(lo * hi)
             t0 = time.perf_counter()
-            det, fall = detaches(mid * SIGMA, dx, args.t_end, args.compile)
+            det, fall = detaches(mid * SIGMA, dx, args.t_end, args.compile, args.contact_angle)
             print(f"| {dx * 1e3:.3f} | {mid:.3f} | {det} | {fall * 1e3:.2f} | {time.perf_counter() - t0:.0f} |", flush=True)
             lo, hi = (mid, hi) if det else (lo, mid)
         results.append((dx, math.sqrt(lo * hi), hi / lo))

@@ -55,6 +55,7 @@ def measure(run: Path, time: float | None = None, start_skip: float = 2.0e-3, po
             "bead_columns": b["columns"],
             "bead_width_mm": b["width_m"] * 1e3, "bead_height_mm": b["height_m"] * 1e3,
             "penetration_mm": b["penetration_m"] * 1e3, "added_area_mm2": b["added_area_m2"] * 1e6,
+            "toe_angle_deg": b["toe_angle_deg"],
             "pool_length_mm": mp["length_m"] * 1e3, "pool_width_mm": mp["width_m"] * 1e3,
             "pool_depth_mm": mp["depth_m"] * 1e3, "peak_K": mp["peak_temperature_K"]}
     if section_x0 is not None:
