@@ -179,8 +179,8 @@ SURFACE = {
                           doc="remove the discrete surface forces' resultant (a free body of liquid "
                               "only, e.g. a drop: on a closed surface the continuum forces have none)", field="zero_net_force"),
     "contact_angle_deg": Key("float", default=None, gt=0, lt=180,
-                             doc="equilibrium contact angle theta_eq between melt and solid (the "
-                                 "wall-normal correction at the contact line; omit: no wetting model, "
+                             doc="equilibrium contact angle theta_eq between melt and solid or wall "
+                                 "(Young's force at the contact line; omit: no wetting model, "
                                  "a melt/solid contact is not a surface)", field="contact_angle"),
 }
 

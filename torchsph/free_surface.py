@@ -10,17 +10,22 @@ from .kernels import Kernel
 from .neighbors import Domain
 
 
+def colour_pair_weights(m, rho, rows, nb, r, kernel: Kernel, h: float):
+    """The pair weights of the colour gradient (3.9), (V_i^2 + V_j^2) rho_i / (rho_i + rho_j)
+    dW/dr / (r V_i) (rows, k), so that grad c_i = sum_j w_ij (x_i - x_j); and V_j (rows, k)."""
+    rho_i = rho.index_select(0, rows).unsqueeze(1)
+    rho_j = gather_nb(rho, nb)
+    Vi = m.index_select(0, rows).unsqueeze(1) / rho_i
+    Vj = gather_nb(m, nb) / rho_j
+    return (Vi * Vi + Vj * Vj) * rho_i / (rho_i + rho_j) * (kernel.dwdr(r, h) / r) / Vi, Vj
+
+
 def colour_gradient_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
     """grad c_i = (1/V_i) sum_j (V_i^2 + V_j^2) rho_i / (rho_i + rho_j) dW/dr e_ij (3.9) over
     all material neighbours (c = 1 in all material): nonzero only where the kernel is
     truncated, i.e. at a free surface. Points into the material."""
     dx, r = pair_geometry(x, rows, nb, domain, h)
-    dWr = kernel.dwdr(r, h) / r
-    rho_i = rho.index_select(0, rows).unsqueeze(1)
-    rho_j = gather_nb(rho, nb)
-    Vi = m.index_select(0, rows).unsqueeze(1) / rho_i
-    Vj = gather_nb(m, nb) / rho_j
-    w = (Vi * Vi + Vj * Vj) * rho_i / (rho_i + rho_j) * dWr / Vi
+    w, _ = colour_pair_weights(m, rho, rows, nb, r, kernel, h)
     return (w.unsqueeze(-1) * dx).sum(1)
 
 

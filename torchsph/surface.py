@@ -186,9 +186,6 @@ class SurfaceForces:
             kappa = torch.diagonal(gradn, dim1=-2, dim2=-1).sum(-1)
             kappa = kappa / (1.0 + self.band_depth * kappa / (d - 1)).clamp_min(0.5)
             kappa = torch.where(on, kappa, torch.zeros_like(kappa))
-            if band is not None:  # the contact band's own normals blend the melt's surface with
-                # the solid's, and its curvature is no surface's: set from beside it (below)
-                kappa = torch.where(band, torch.zeros_like(kappa), kappa)
             self.kappa.index_copy_(0, rows, kappa)
             alpha = self.tension(state.T.index_select(0, rows))
             n_f = n_out
@@ -198,8 +195,9 @@ class SurfaceForces:
                                         alpha)
                 parts["contact_line"] = F / m.index_select(0, rows).unsqueeze(-1)
                 a = a + parts["contact_line"]
-                # the band carries the tension of the surface beside it (the Laplace balance
-                # down to the solid), with that surface's curvature and normal
+                # the band's own normals blend in the solid's, and its curvature is no
+                # surface's: it carries the tension of the surface beside it (the Laplace
+                # balance down to the solid), with that surface's curvature and normal
                 kappa = torch.where(band, self.wetting.k_band, kappa)
                 n_f = torch.where(band.unsqueeze(-1), self.wetting.n_band, n_out)
                 self.kappa.index_copy_(0, rows, kappa)

@@ -44,22 +44,10 @@ import math
 import torch
 
 from .fluid import dot, gather_nb, pair_geometry
+from .free_surface import colour_pair_weights
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import Phase
-
-
-def solid_colour_pairs(x, m, rho, rows, nb, solid, kernel: Kernel, h: float, domain: Domain):
-    """The solid neighbours' part of the colour gradient (3.9) of ``rows`` (points into the
-    solid; ``solid`` (rows, k) 1 for a solid neighbour, 0 otherwise), and those neighbours'
-    kernel weights V_j W_ij (rows, k) (0 for the others)."""
-    dx, r = pair_geometry(x, rows, nb, domain, h)
-    rho_i = rho.index_select(0, rows).unsqueeze(1)
-    rho_j = gather_nb(rho, nb)
-    Vi = m.index_select(0, rows).unsqueeze(1) / rho_i
-    Vj = gather_nb(m, nb) / rho_j
-    w = (Vi * Vi + Vj * Vj) * rho_i / (rho_i + rho_j) * (kernel.dwdr(r, h) / r) / Vi * solid
-    return (w.unsqueeze(-1) * dx).sum(1), Vj * kernel.w(r, h) * solid
 
 
 def unit(v: torch.Tensor) -> torch.Tensor:
@@ -72,8 +60,7 @@ class ContactAngle:
     module's docstring)."""
 
     def __init__(self, angle_deg: float, kernel: Kernel, h: float, domain: Domain, threshold: float):
-        self.angle = math.radians(angle_deg)
-        self.cos, self.sin = math.cos(self.angle), math.sin(self.angle)
+        self.cos = math.cos(math.radians(angle_deg))
         self.kernel, self.h, self.domain, self.threshold = kernel, h, domain, threshold
         self.reaction = None  # (N, d) force booked on the solid at the last evaluation
         self.band = None  # (rows,) bool: the contact band among the melt rows at the last evaluation
@@ -87,8 +74,13 @@ class ContactAngle:
         their support. Also keeps, for :meth:`force`, the solid's outward normal n_w and the
         unit vector t in the solid's tangent plane pointing out of the melt. ``g``: the rows'
         colour gradient over all material."""
-        gs, self.weights = solid_colour_pairs(state.x, state.m, state.rho, rows, nb, self.solid_nb,
-                                              self.kernel, self.h, self.domain)
+        # the solid neighbours' part of the colour gradient (points into the solid), and their
+        # kernel weights V_j W_ij for the reaction; the pair geometry is kept for force()
+        self.geom = pair_geometry(state.x, rows, nb, self.domain, self.h)
+        dxp, r = self.geom
+        w, Vj = colour_pair_weights(state.m, state.rho, rows, nb, r, self.kernel, self.h)
+        gs = ((w * self.solid_nb).unsqueeze(-1) * dxp).sum(1)
+        self.weights = Vj * self.kernel.w(r, self.h) * self.solid_nb
         gsn = torch.sqrt(dot(gs, gs))
         self.band = on & (gsn * self.h > self.threshold)
         self.n_w = -gs / gsn.clamp_min(1e-300).unsqueeze(-1)
@@ -103,11 +95,13 @@ class ContactAngle:
         melt's surface beside the band (the kernel average of ``normals`` (N, d) over the
         surface particles, ``surface`` (N,) bool, that are not in the band), shared over the
         band particles of the contact line within a kernel support."""
-        dxp, r = pair_geometry(state.x, rows, nb, self.domain, self.h)
+        dxp, r = self.geom  # (this state's: contact_band() came first)
         Wk = self.kernel.w(r, self.h) * mask
         band_full = torch.zeros_like(surface).index_copy_(0, rows, self.band)
         beside = (gather_nb(surface & ~band_full, nb)).to(Wk.dtype) * Wk
-        wsum = beside.sum(1).clamp_min(1e-300)
+        bsum = beside.sum(1)
+        seen = (bsum > 0) & self.band
+        wsum = bsum.clamp_min(1e-300)
         n_d = unit((gather_nb(normals, nb) * beside.unsqueeze(-1)).sum(1))
         # the angle at the band's height: the surface's normal turns by its curvature on the
         # way down (cos(theta) grows by z / R over a height z on a circle / sphere of radius
@@ -120,7 +114,6 @@ class ContactAngle:
         cos_d = dot(n_d, self.n_w) - k_d * z_d
         self.k_band = k_d * (state.dim - 1)  # the surface's curvature beside the band
         self.n_band = torch.where(self.band.unsqueeze(-1), n_d, torch.zeros_like(n_d))
-        seen = (beside.sum(1) > 0) & self.band
         # the band particles within a support: 2-D, one contact point's; 3-D, a chord of the
         # line through the support sphere (pi/4 of its diameter on average)
         count = 1.0 + (gather_nb(band_full, nb).to(Wk.dtype) * mask).sum(1)
@@ -153,4 +146,4 @@ class ContactAngle:
         return out
 
 
-__all__ = ["ContactAngle", "solid_colour_pairs"]
+__all__ = ["ContactAngle"]
