@@ -409,7 +409,7 @@ def make_comm(cfg: dict, comm=None) -> SlabComm:
     stages = 3
     if "surface" in cfg:  # colour -> normals -> smoothed normals -> curvature -> force
         stages = 5
-        if cfg["surface"].get("contact_angle_deg") is not None:
+        if cfg["surface"].get("contact_angle_deg") is not None and cfg["surface"].get("wetting", True):
             stages = 7  # the contact line reads the curvature beside it, and spreads its force
     return SlabComm(kernel.radius(h) + skin, skin, stages=stages, comm=comm,
                     rebalance_every=nm.get("rebalance_every", 0))

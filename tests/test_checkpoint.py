@@ -25,6 +25,8 @@ def final_state(path):
     ("oscillating_drop_2d", ["scene.dx_m=1e-4"], 40),          # free surface forces + shifting off
     ("beam_plate", ["run.t_end_s=0.02"], 30),                  # beam, latent heat, conduction
     ("preheated_block", ["heating.t_end_s=0.004"], 10),       # a composed term ([heating]) switching off
+    ("pendant_drop", ["scene.dx_m=2e-4", "scene.wire_diameter_m=1.2e-3", "fluid.gravity_ramp_s=2e-4",
+                      "numerics.compile=false"], 20),         # gravity ramped (restart mid-ramp), wetting
 ])
 def test_restart_is_bit_for_bit(tmp_path, case, over, K):
     """float64: K steps == K/2 steps + checkpoint + restart + K/2 steps, every field equal."""

@@ -49,7 +49,7 @@ def test_good_cases_load():
     for case in sorted(p for p in CASES.iterdir() if (p / "case.toml").exists()):
         _, cfg = load_case(case)
         assert cfg["scene"]["type"] in {"taylor_green", "poiseuille", "hydrostatic_tank", "conduction_1d",
-                                        "gaussian_bump", "block", "drop", "sessile_drop", "deposition"}
+                                        "gaussian_bump", "block", "drop", "sessile_drop", "pendant_drop", "deposition"}
         if "preview" in load_raw(case)[1]:  # the preview variant is a valid case too
             load_case(case, preview=True)
 

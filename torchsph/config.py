@@ -93,6 +93,10 @@ FLUID = {
                   doc="artificial speed of sound (Mach <= 0.1 of the flow); needed with fluid", field="c0"),
     "viscosity_Pa_s": Key("float", default=None, ge=0, doc="dynamic viscosity; needed with fluid", field="eta"),
     "gravity_m_s2": Key("vec", default=None, doc="gravity vector", field="gravity"),
+    "gravity_ramp_s": Key("float", default=0.0, ge=0,
+                          doc="gravity grows linearly from zero to gravity_m_s2 over this time, then holds "
+                              "(a quasi-static load, e.g. until a pendant drop detaches; 0 = full from the start)",
+                          field="gravity_ramp"),
     "body_force_m_s2": Key("vec", default=None, doc="extra body acceleration, e.g. a channel drive", field="body_force"),
     "gamma": Key("float", default=7.0, gt=0, doc="Tait exponent", field="gamma"),
     "background_pressure_Pa": Key("float", default=0.0, ge=0, doc="added to the Tait pressure", field="background_pressure"),
@@ -182,6 +186,9 @@ SURFACE = {
                              doc="equilibrium contact angle theta_eq between melt and solid or wall "
                                  "(Young's force at the contact line; omit: no wetting model, "
                                  "a melt/solid contact is not a surface)", field="contact_angle"),
+    "wetting": Key("bool", default=True,
+                   doc="false: contact_angle_deg is ignored (the thesis's model, c = 1 in melt and solid), "
+                       "e.g. to compare with a version before the wetting model", field="wetting"),
 }
 
 CORE = ("scene", "fluid", "thermal", "beam", "surface", "numerics", "run", "preview")

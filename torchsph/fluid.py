@@ -32,6 +32,7 @@ class FluidParams:
     density_diffusion: float = 0.0  # delta of the delta-SPH (Molteni-Colagrossi) term; 0 = off
     background_pressure: float = 0.0  # added to the Tait pressure (Pa)
     shifting: float = 0.0  # particle-shifting coefficient C of dr = -C h^2 sum_j V_j (...) grad W; 0 = off
+    gravity_ramp: float = 0.0  # s: gravity grows linearly from 0 to ``gravity`` over this time (0 = off)
 
 
 def gather_nb(t: torch.Tensor, nb: torch.Tensor) -> torch.Tensor:
@@ -212,13 +213,30 @@ class WeaklyCompressibleFluid:
         return self._const(like)[0]
 
     def _const(self, like: torch.Tensor):
-        """(gravity, gravity + body force) as tensors on ``like``'s device, made once."""
+        """(gravity, gravity + body force) as tensors on ``like``'s device, made once (a gravity
+        ramp updates them in place: :meth:`ramp_gravity`)."""
         key = (like.dtype, str(like.device))
         cache = self.__dict__.setdefault("_consts", {})
         if key not in cache:
-            g = torch.as_tensor(self.prm.gravity, dtype=like.dtype, device=like.device)
-            cache[key] = (g, g + torch.as_tensor(self.prm.body_force, dtype=like.dtype, device=like.device))
+            cache[key] = self._const_values(like)
         return cache[key]
+
+    def _const_values(self, like: torch.Tensor):
+        scale = self.__dict__.get("_g_scale", 0.0 if self.prm.gravity_ramp > 0 else 1.0)
+        g = torch.as_tensor(self.prm.gravity, dtype=like.dtype, device=like.device) * scale
+        return g, g + torch.as_tensor(self.prm.body_force, dtype=like.dtype, device=like.device)
+
+    def ramp_gravity(self, t: float):
+        """Gravity at time ``t`` under ``gravity_ramp``: ``gravity`` min(t / ramp, 1), written
+        into the cached constants in place (traced parts read them as inputs)."""
+        scale = min(t / self.prm.gravity_ramp, 1.0) if self.prm.gravity_ramp > 0 else 1.0
+        if scale == self.__dict__.get("_g_scale"):
+            return
+        self._g_scale = scale
+        for g, gb in self.__dict__.get("_consts", {}).values():
+            new_g, new_gb = self._const_values(g)
+            g.copy_(new_g)
+            gb.copy_(new_gb)
 
     # --- the right-hand side ----------------------------------------------
     def momentum(self, state: ParticleState, v_eval: torch.Tensor, terms: bool = False):

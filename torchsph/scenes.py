@@ -302,6 +302,51 @@ def check_sessile_drop(cfg):
                         f"2 radius_m = {2 * sc['radius_m']:g}")
 
 
+def build_pendant_drop(cfg, dtype, device) -> Scene:
+    """A liquid drop hanging from the end face of a vertical wire (thesis §5.1, SPEC 3b): the
+    wire, a cylinder of wall particles of diameter ``wire_diameter_m``, stands on the plane
+    z = 0; the drop is the part below that plane of a ball of radius ``radius_m`` whose cut
+    circle is the wire's end face (so the drop starts wetting the whole face). Gravity
+    (``[fluid] gravity_m_s2``, with ``gravity_ramp_s`` to load it quasi-statically) pulls it
+    off; the domain reaches 10 radii below the wire for the falling drop."""
+    sc, fl = cfg["scene"], cfg["fluid"]
+    dx, R, d_w = sc["dx_m"], sc["radius_m"], sc["wire_diameter_m"]
+    r_w = d_w / 2
+    nw = 2 * max(round(r_w / dx), 1)  # even: symmetric about the axis
+    nz_w = max(round(sc["wire_length_m"] / dx), 1)
+    xw = lattice([nw, nw, nz_w], dx, origin=[-nw * dx / 2, -nw * dx / 2, 0.0], dtype=dtype, device=device)
+    xw = xw[(xw[:, :2] ** 2).sum(1) < r_w * r_w]
+    zc = -math.sqrt(max(R * R - r_w * r_w, 0.0))
+    nd = 2 * max(round(R / dx) + 1, 1)
+    nz = max(round((R - zc) / dx), 1)
+    xf = lattice([nd, nd, nz], dx, origin=[-nd * dx / 2, -nd * dx / 2, -nz * dx], dtype=dtype, device=device)
+    centre = torch.tensor([0.0, 0.0, zc], dtype=dtype, device=device)
+    xf = xf[((xf - centre) ** 2).sum(1) < R * R]
+    rho0 = fl["rho0_kg_m3"]
+    drop = ParticleState.create(xf, torch.zeros_like(xf), rho0, rho0 * dx**3, Phase.FLUID,
+                                T=fl["temperature_K"], dtype=dtype, device=device)
+    wire = solid_block(xw, fl, dx, 3, fl["temperature_K"], dtype, device, id0=xf.shape[0], phase=Phase.WALL)
+    side = max(3.0 * R, 2.0 * r_w)
+    lo, hi = [-side, -side, -10.0 * R], [side, side, nz_w * dx]
+    return Scene(ParticleState.cat([drop, wire]), Domain(lo, hi, [False] * 3), dx,
+                 {"R": R, "wire_radius": r_w, "mass": float(drop.m.sum()), "wire_end": 0.0})
+
+
+def check_pendant_drop(cfg):
+    sc = cfg["scene"]
+    dx = sc["dx_m"]
+    if sc["wire_diameter_m"] < 6 * dx * (1 - 1e-9):
+        raise CaseError(f"[scene] wire_diameter_m = {sc['wire_diameter_m']:g}: must be >= 6 dx_m = {6 * dx:g} "
+                        "(the contact line needs a few particles across the end face)")
+    if sc["radius_m"] < sc["wire_diameter_m"] / 2:
+        raise CaseError(f"[scene] radius_m = {sc['radius_m']:g}: must be >= the wire's radius "
+                        f"{sc['wire_diameter_m'] / 2:g} (the drop's cut circle is the wire's end face)")
+    need = 2.0 * cfg["numerics"]["h_over_dx"] * dx
+    if sc["wire_length_m"] < need:
+        raise CaseError(f"[scene] wire_length_m = {sc['wire_length_m']:g}: must be >= the kernel support "
+                        f"2 h = {need:g} (the wire's end must be a full wall)")
+
+
 SCENES: dict[str, SceneSpec] = {
     "taylor_green": SceneSpec(
         {"length_m": Key("float", default=1.0, gt=0, doc="side of the periodic box"),
@@ -364,6 +409,12 @@ SCENES: dict[str, SceneSpec] = {
                       doc="plate particles: rigid walls, or rigid solid (conducts heat with [thermal])"),
          "wall_layers": Key("int", default=3, ge=1, doc="layers of plate particles")},
         (2, 3), build_sessile_drop, check_sessile_drop, "liquid cap resting on a flat plate (wetting)"),
+    "pendant_drop": SceneSpec(
+        {"radius_m": Key("float", gt=0, doc="radius of the ball the drop is cut from"),
+         "dx_m": Key("float", gt=0, doc="particle spacing"),
+         "wire_diameter_m": Key("float", gt=0, doc="diameter d of the wire the drop hangs from"),
+         "wire_length_m": Key("float", default=1.0e-3, gt=0, doc="length of wire modelled above its end face")},
+        (3,), build_pendant_drop, check_pendant_drop, "drop hanging from a wire's end until it detaches (Tate's law)"),
     "deposition": SceneSpec(
         {"substrate_size_m": Key("vec", doc="substrate block (x travel, y width, z thickness)"),
          "dx_m": Key("float", gt=0, doc="particle spacing"),

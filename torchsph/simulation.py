@@ -217,6 +217,8 @@ class Simulation:
         def scalar(v: float) -> torch.Tensor:  # a 0-d tensor for the traced parts (a fill: no copy, no read)
             return torch.full((), v, dtype=torch.float64, device=self.state.device)
         dt_t = scalar(dt)
+        if self.fluid is not None and self.fluid.prm.gravity_ramp > 0:  # the accelerations at t + dt see g(t + dt)
+            self.fluid.ramp_gravity(self.t + dt)
         v_half, v_tilde, rows0, H_half_r, inv = step.first_half(self, dt_t)  # 1a-1e
         T0 = self.T_prev
         H_half = None  # the whole array, made only where particles are added, removed or re-selected

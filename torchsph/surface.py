@@ -46,6 +46,7 @@ class SurfaceParams:
     threshold: float = 0.05  # |grad c| h above which a particle belongs to the surface
     zero_net_force: bool = False  # remove the discrete forces' net resultant (a free body only)
     contact_angle: float | None = None  # theta_eq between melt and solid, deg (None: no wetting model)
+    wetting: bool = True  # False: contact_angle ignored
 
 
 def gradient_moments(x, f, w, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
@@ -118,7 +119,7 @@ class SurfaceForces:
         self.n_surface = 0
         # the colour gradient, shared with the surface losses when both exist (one per step)
         self.colour = colour if colour is not None else ColourGradient(kernel, h, domain, params.threshold, compile)
-        self.wetting = None if params.contact_angle is None else ContactAngle(
+        self.wetting = None if params.contact_angle is None or not params.wetting else ContactAngle(
             params.contact_angle, kernel, h, domain, params.threshold)
         self._fns = {"moments": gradient_moments, "smooth": smoothed_pairs}
         if compile:  # the pair sums fuse; the batched d x d solves stay eager
@@ -191,8 +192,7 @@ class SurfaceForces:
             n_f = n_out
             if band is not None:
                 surf = torch.zeros_like(self.fluid).index_copy_(0, rows, on)
-                F = self.wetting.force(state, rows, nb, self.mask_f.to(rho.dtype), nfield, self.kappa, surf,
-                                        alpha)
+                F = self.wetting.force(state, rows, nfield, self.kappa, surf, alpha)
                 parts["contact_line"] = F / m.index_select(0, rows).unsqueeze(-1)
                 a = a + parts["contact_line"]
                 # the band's own normals blend in the solid's, and its curvature is no

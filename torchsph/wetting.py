@@ -66,41 +66,54 @@ class ContactAngle:
         self.band = None  # (rows,) bool: the contact band among the melt rows at the last evaluation
 
     def select(self, state, nb: torch.Tensor, mask: torch.Tensor):
-        """The solid neighbours (any non-fluid material) of the melt rows' table ``nb``."""
-        self.solid_nb = (gather_nb(state.phase != Phase.FLUID, nb) & mask).to(state.x.dtype)
+        """At a pair selection: the melt rows of the table ``nb`` (``mask``: its real entries)
+        with solid (any non-fluid material) in it. Only they can meet solid within a kernel
+        support before the next selection (the table reaches a skin further), so the band is
+        sought among them alone: the work follows the melt beside the solid, not all melt."""
+        solid = gather_nb(state.phase != Phase.FLUID, nb) & mask
+        self.sub = torch.nonzero(solid.any(1)).squeeze(1)  # (a selection may read the host)
+        self.nb_c, self.mask_c = nb.index_select(0, self.sub), mask.index_select(0, self.sub).to(state.x.dtype)
+        self.solid_nb = solid.index_select(0, self.sub).to(state.x.dtype)
 
     def contact_band(self, state, rows, nb, g: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
-        """The melt rows ``rows`` in the contact band: surface particles (``on``) with solid in
-        their support. Also keeps, for :meth:`force`, the solid's outward normal n_w and the
-        unit vector t in the solid's tangent plane pointing out of the melt. ``g``: the rows'
-        colour gradient over all material."""
+        """The melt rows ``rows`` in the contact band (R,) bool: surface particles (``on``)
+        with solid in their support. Also keeps, for :meth:`force`, the solid's outward normal
+        n_w and the unit vector t in the solid's tangent plane pointing out of the melt.
+        ``g``: the rows' colour gradient over all material. (Evaluated on the rows with solid
+        in their table, :meth:`select`.)"""
+        sub, nb = self.sub, self.nb_c
+        rows_c = rows.index_select(0, sub)
         # the solid neighbours' part of the colour gradient (points into the solid), and their
         # kernel weights V_j W_ij for the reaction; the pair geometry is kept for force()
-        self.geom = pair_geometry(state.x, rows, nb, self.domain, self.h)
+        self.geom = pair_geometry(state.x, rows_c, nb, self.domain, self.h)
         dxp, r = self.geom
-        w, Vj = colour_pair_weights(state.m, state.rho, rows, nb, r, self.kernel, self.h)
+        w, Vj = colour_pair_weights(state.m, state.rho, rows_c, nb, r, self.kernel, self.h)
         gs = ((w * self.solid_nb).unsqueeze(-1) * dxp).sum(1)
         self.weights = Vj * self.kernel.w(r, self.h) * self.solid_nb
         gsn = torch.sqrt(dot(gs, gs))
-        self.band = on & (gsn * self.h > self.threshold)
+        self.band_c = on.index_select(0, sub) & (gsn * self.h > self.threshold)
         self.n_w = -gs / gsn.clamp_min(1e-300).unsqueeze(-1)
-        out = -(g - gs)  # the melt-only colour gradient, reversed: out of the melt
+        out = -(g.index_select(0, sub) - gs)  # the melt-only colour gradient, reversed: out of the melt
         self.t = unit(out - dot(out, self.n_w).unsqueeze(-1) * self.n_w)
+        self.band = torch.zeros_like(on).index_copy_(0, sub, self.band_c)
         return self.band
 
-    def force(self, state, rows, nb, mask, normals: torch.Tensor, kappa: torch.Tensor,
+    def force(self, state, rows, normals: torch.Tensor, kappa: torch.Tensor,
               surface: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-        """Young's unbalanced force on the band rows (R, d), in N (per unit depth in 2-D):
-        alpha (cos theta_eq - cos theta) t, with theta the angle between the solid and the
-        melt's surface beside the band (the kernel average of ``normals`` (N, d) over the
-        surface particles, ``surface`` (N,) bool, that are not in the band), shared over the
-        band particles of the contact line within a kernel support."""
+        """Young's unbalanced force on the melt rows ``rows`` (R, d; zero off the band), in N
+        (per unit depth in 2-D): alpha (cos theta_eq - cos theta) t, with theta the angle
+        between the solid and the melt's surface beside the band (the kernel average of
+        ``normals`` (N, d) over the surface particles, ``surface`` (N,) bool, that are not in
+        the band), shared over the band particles of the contact line within a kernel
+        support. ``alpha``: the rows' tension (R,). Also sets ``k_band`` and ``n_band`` (R,)."""
+        sub, nb, mask, band = self.sub, self.nb_c, self.mask_c, self.band_c
+        rows_c = rows.index_select(0, sub)
         dxp, r = self.geom  # (this state's: contact_band() came first)
         Wk = self.kernel.w(r, self.h) * mask
         band_full = torch.zeros_like(surface).index_copy_(0, rows, self.band)
         beside = (gather_nb(surface & ~band_full, nb)).to(Wk.dtype) * Wk
         bsum = beside.sum(1)
-        seen = (bsum > 0) & self.band
+        seen = (bsum > 0) & band
         wsum = bsum.clamp_min(1e-300)
         n_d = unit((gather_nb(normals, nb) * beside.unsqueeze(-1)).sum(1))
         # the angle at the band's height: the surface's normal turns by its curvature on the
@@ -112,36 +125,39 @@ class ContactAngle:
         z_d = (up * beside).sum(1) / wsum
         k_d = (gather_nb(kappa, nb) * beside).sum(1) / wsum / (state.dim - 1)
         cos_d = dot(n_d, self.n_w) - k_d * z_d
-        self.k_band = k_d * (state.dim - 1)  # the surface's curvature beside the band
-        self.n_band = torch.where(self.band.unsqueeze(-1), n_d, torch.zeros_like(n_d))
+        n_rows = rows.shape[0]
+        # the surface's curvature and normal beside the band
+        self.k_band = torch.zeros(n_rows, dtype=Wk.dtype, device=Wk.device).index_copy_(0, sub, k_d * (state.dim - 1))
+        self.n_band = torch.zeros(n_rows, state.dim, dtype=Wk.dtype, device=Wk.device).index_copy_(
+            0, sub, torch.where(band.unsqueeze(-1), n_d, torch.zeros_like(n_d)))
         # the band particles within a support: 2-D, one contact point's; 3-D, a chord of the
         # line through the support sphere (pi/4 of its diameter on average)
         count = 1.0 + (gather_nb(band_full, nb).to(Wk.dtype) * mask).sum(1)
         share = 1.0 / count if state.dim == 2 else (0.5 * math.pi * self.kernel.radius(self.h)) / count
-        self.drive = torch.where(seen, self.cos - cos_d, torch.zeros_like(cos_d))  # (diagnosis)
-        mag = alpha * (self.cos - cos_d) * share
+        self.drive = torch.where(seen, self.cos - cos_d, torch.zeros_like(cos_d))  # (diagnosis, on the sub-rows)
+        mag = alpha.index_select(0, sub) * (self.cos - cos_d) * share
         F = torch.where(seen.unsqueeze(-1), mag.unsqueeze(-1) * self.t, torch.zeros_like(self.t))
-        self.book(state, rows, nb, F)
+        self.book(state, F)
         # spread over the melt within the band particle's support (kernel weights, itself
         # included): a force on the few band particles alone tears them off the melt
         V = state.m / state.rho
         melt_nb = (1.0 - self.solid_nb) * Wk * gather_nb(V, nb)
-        w_self = V.index_select(0, rows) * self.kernel.w(torch.zeros((), dtype=Wk.dtype), self.h)
+        w_self = V.index_select(0, rows_c) * self.kernel.w(torch.zeros((), dtype=Wk.dtype), self.h)
         norm = (melt_nb.sum(1) + w_self).unsqueeze(-1)
         out = torch.zeros_like(state.x)
         out.index_add_(0, nb.reshape(-1), (melt_nb.unsqueeze(-1) * (F / norm).unsqueeze(1)).reshape(-1, state.dim))
-        out.index_add_(0, rows, w_self.unsqueeze(-1) * F / norm)
+        out.index_add_(0, rows_c, w_self.unsqueeze(-1) * F / norm)
         return out.index_select(0, rows)
 
-    def book(self, state, rows, nb, force: torch.Tensor) -> torch.Tensor:
-        """The reaction (N, d) on the solid of ``force`` (R, d, in N) on the melt rows (zero off
-        the band): each band particle's force, reversed, shared over its solid neighbours by
-        V_j W_ij."""
+    def book(self, state, force: torch.Tensor) -> torch.Tensor:
+        """The reaction (N, d) on the solid of ``force`` (on the sub-rows of :meth:`select`, in
+        N; zero off the band): each band particle's force, reversed, shared over its solid
+        neighbours by V_j W_ij."""
         wsum = self.weights.sum(1, keepdim=True)
-        share = self.weights / wsum.clamp_min(1e-300) * self.band.to(force.dtype).unsqueeze(-1)
+        share = self.weights / wsum.clamp_min(1e-300) * self.band_c.to(force.dtype).unsqueeze(-1)
         pair = -share.unsqueeze(-1) * force.unsqueeze(1)  # (R, k, d)
         out = torch.zeros_like(state.x)
-        out.index_add_(0, nb.reshape(-1), pair.reshape(-1, state.dim))
+        out.index_add_(0, self.nb_c.reshape(-1), pair.reshape(-1, state.dim))
         self.reaction = out
         return out
 

@@ -49,13 +49,20 @@ def env1():
     return {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
+def same_model(tree: Path) -> list[str]:
+    """--set arguments that put a tree on the reference's physics: a version with the wetting
+    model runs these comparisons without it (the thesis's c = 1 in melt and solid, as b14e316)."""
+    has = '"wetting": Key(' in (tree / "torchsph" / "config.py").read_text()
+    return ["--set", "surface.wetting=false"] if has else []
+
+
 def preview_checkpoint(tree: Path, t: float) -> Path:
     out = CACHE / tree_key(tree) / f"preview_t{t:g}"
     ck = out / "checkpoint.pt"
     if not ck.exists():
         print(f"# {tree_key(tree)}: running the preview to t = {t:g} s for its state (cached in {out})", flush=True)
         subprocess.run([sys.executable, "-m", "torchsph", "cases/perpendicular_350W", "--preview", "--t-end",
-                        str(t), "--quiet", "--out", str(out)], cwd=tree, env=env1(), check=True)
+                        str(t), "--quiet", "--out", str(out)] + same_model(tree), cwd=tree, env=env1(), check=True)
     return ck
 
 

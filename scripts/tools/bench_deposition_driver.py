@@ -95,7 +95,8 @@ def main():
         # a neighbour build now, as after a restart from another version's checkpoint
         (getattr(sim, "refresh_pairs", None) or getattr(sim, "_refresh_pairs"))(force=True)
     else:
-        _, cfg = load_case(a.tree / "cases" / "perpendicular_350W", [])
+        from torchsph.config import SURFACE  # the reference's physics: no wetting model (as b14e316)
+        _, cfg = load_case(a.tree / "cases" / "perpendicular_350W", ["surface.wetting=false"] if "wetting" in SURFACE else [])
         _, sim = make_simulation(cfg)
     setup = time.perf_counter() - t0
     n0 = sim.state.n
