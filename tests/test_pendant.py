@@ -98,3 +98,20 @@ def test_pendant_drop_scene_wets_the_whole_end_face():
 def test_pendant_drop_case_errors_name_the_key(over, key):
     with pytest.raises(CaseError, match=key):
         load_case(CASES / "pendant_drop", over)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("d_wire", [1.0e-3, 1.5e-3])
+def test_pendant_drop_detaches_at_tates_load(d_wire):
+    """The case's drop (R = 1 mm, sigma = 0.05 N/m, alpha = sigma, dx = 0.125 mm) under a ramped
+    load: the drop's weight when it pinches off equals the thesis's Tate law (4.1),
+    M g = pi d sigma, within 10 % for both wires (measured 1.074 and 0.942). (Against Tate's law
+    with the Harkins-Brown factor the falling mass is +44 % and +11 %: the model's drop
+    pinches off next to the wire's face and leaves little on it; docs/VERIFICATION.md.)"""
+    from torchsph.caps import detach
+
+    r = detach(CASES / "pendant_drop", ["scene.dx_m=1.25e-4", f"scene.wire_diameter_m={d_wire}"])
+    assert r["detached"]
+    load = r["m_drop"] * r["g"] / (math.pi * d_wire * 0.05)
+    assert abs(load - 1.0) < 0.10, load
+    assert r["m_fallen"] > 0.5 * r["m_drop"]

@@ -144,11 +144,14 @@ def tate_mass(r: float, sigma: float, g: float, rho: float) -> tuple[float, floa
     """The mass of the drop that falls from a tip of outer radius ``r`` under gravity ``g``
     by Tate's law with the Harkins-Brown factor, m g = 2 pi r sigma f(r / (m / rho)^(1/3))
     (solved by fixed point; f varies slowly): (m, f)."""
+    lo, hi = HARKINS_BROWN[0][0], HARKINS_BROWN[-1][0]
     f = 0.6
     for _ in range(100):
         m = 2.0 * math.pi * r * sigma * f / g
-        f_new = harkins_brown(r / (m / rho) ** (1.0 / 3.0))
+        f_new = harkins_brown(min(max(r / (m / rho) ** (1.0 / 3.0), lo), hi))  # (the iterates may stray)
         if abs(f_new - f) < 1e-12:
             break
         f = f_new
-    return 2.0 * math.pi * r * sigma * f / g, f
+    m = 2.0 * math.pi * r * sigma * f / g
+    harkins_brown(r / (m / rho) ** (1.0 / 3.0))  # the solution must lie in the table
+    return m, f
