@@ -308,7 +308,7 @@ def build_pendant_drop(cfg, dtype, device) -> Scene:
     z = 0; the drop is the part below that plane of a ball of radius ``radius_m`` whose cut
     circle is the wire's end face (so the drop starts wetting the whole face). Gravity
     (``[fluid] gravity_m_s2``, with ``gravity_ramp_s`` to load it quasi-statically) pulls it
-    off; the domain reaches 10 radii below the wire for the falling drop."""
+    off; the domain reaches 30 radii below the wire for the falling drop."""
     sc, fl = cfg["scene"], cfg["fluid"]
     dx, R, d_w = sc["dx_m"], sc["radius_m"], sc["wire_diameter_m"]
     r_w = d_w / 2
@@ -327,7 +327,7 @@ def build_pendant_drop(cfg, dtype, device) -> Scene:
                                 T=fl["temperature_K"], dtype=dtype, device=device)
     wire = solid_block(xw, fl, dx, 3, fl["temperature_K"], dtype, device, id0=xf.shape[0], phase=Phase.WALL)
     side = max(3.0 * R, 2.0 * r_w)
-    lo, hi = [-side, -side, -10.0 * R], [side, side, nz_w * dx]
+    lo, hi = [-side, -side, -30.0 * R], [side, side, nz_w * dx]
     return Scene(ParticleState.cat([drop, wire]), Domain(lo, hi, [False] * 3), dx,
                  {"R": R, "wire_radius": r_w, "mass": float(drop.m.sum()), "wire_end": 0.0})
 

@@ -39,7 +39,7 @@ CASE = ROOT / "cases" / "pendant_drop"
 # 5x the load over 0.11 s (50 capillary times sqrt(rho R^3 / sigma) = 2.2 ms); the settling drag
 # acts over the first 10 ms (g below half the load); a neck may stretch to 60 % as it pinches.
 MATERIALS = {
-    "water-like": {"sigma": 0.05, "rho": 1000.0, "over": []},
+    "water-like": {"sigma": 0.05, "rho": 1000.0, "over": ["run.t_end_s=0.1"]},  # the whole ramp
     "steel": {"sigma": 1.63, "rho": 7890.0, "over": [
         "fluid.rho0_kg_m3=7890.0", "fluid.viscosity_Pa_s=0.5", "fluid.c0_m_s=10.0",
         "fluid.gravity_m_s2=[0.0, 0.0, -1000.0]", "fluid.gravity_ramp_s=0.11", "run.t_end_s=0.11",
