@@ -165,7 +165,7 @@ class SurfaceForces:
         n_out = -g / gns.unsqueeze(-1) * onf
         band = None
         if self.wetting is not None:  # the contact band: the melt's surface next to the solid
-            band = self.wetting.contact_band(state, rows, nb, g, on)
+            band = self.wetting.contact_band(state, rows, g, on)
         self.normal.index_copy_(0, rows, n_out)
         flag = torch.zeros_like(rho).index_copy_(0, rows, on.to(rho.dtype))  # surface fluid particles
         # force per unit mass = (force per area) x A_i / m_i = (force per area) |grad c| / (rho D)

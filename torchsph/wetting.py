@@ -75,7 +75,7 @@ class ContactAngle:
         self.nb_c, self.mask_c = nb.index_select(0, self.sub), mask.index_select(0, self.sub).to(state.x.dtype)
         self.solid_nb = solid.index_select(0, self.sub).to(state.x.dtype)
 
-    def contact_band(self, state, rows, nb, g: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
+    def contact_band(self, state, rows, g: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
         """The melt rows ``rows`` in the contact band (R,) bool: surface particles (``on``)
         with solid in their support. Also keeps, for :meth:`force`, the solid's outward normal
         n_w and the unit vector t in the solid's tangent plane pointing out of the melt.
