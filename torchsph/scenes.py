@@ -283,8 +283,12 @@ def build_sessile_drop(cfg, dtype, device) -> Scene:
         plate.body[:] = 1
     half = nw * dx / 2
     height = max(3.0 * R, 2.0 * top)
-    lo = [-half] * (d - 1) + [-layers * dx]
-    hi = [half] * (d - 1) + [height]
+    # a plate narrower than 7 R (a pillar): room beside and below it for melt that runs over
+    # its edges (the domain of the default plate is the plate's own)
+    pillar = half < 3.5 * R - dx
+    side = 3.5 * R if pillar else half
+    lo = [-side] * (d - 1) + [-layers * dx - (2.0 * R if pillar else 0.0)]
+    hi = [side] * (d - 1) + [height]
     volume = xf.shape[0] * dx**d
     return Scene(ParticleState.cat([drop, plate]), Domain(lo, hi, [False] * d), dx,
                  {"R": R, "volume": volume, "plate_top": 0.0})

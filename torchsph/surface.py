@@ -137,7 +137,7 @@ class SurfaceForces:
         self.fluid = fluid
         self.colour.want("surface", self.rows_f, table)
         if self.wetting is not None:
-            self.wetting.select(state, self.nb_f, self.mask_f)
+            self.wetting.select(state, self.nb_f, self.mask_f, table)
 
     def tension(self, T: torch.Tensor) -> torch.Tensor:
         prm = self.prm

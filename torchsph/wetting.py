@@ -26,6 +26,15 @@ magnitude, so the equilibrium angle does not hang on how the line's length is sh
   beside, a height z above the band particle (exact on a circle or sphere). Without that, the
   angle would be read a few spacings up the surface, and a cap settle steeper than theta_eq
   by about z / R rad.
+- Edges (Gibbs's criterion, Gibbs 1878; Oliver, Huh & Mason 1977): where the solid's
+  surface turns within the support, e.g. a wire's end face meeting its side, the line's
+  angle is measured against every outward normal of the solid's surface there (the solid's
+  own colour gradient at its surface particles that face the melt particle), and the line
+  holds, with no force, while theta_eq lies between those angles: at a 90 deg edge a drop
+  stays put from theta_eq on the face to theta_eq + 90 deg. Outside that range the drive is
+  the nearest angle's. On a flat face the normals agree and it is the plain force. (With
+  the blended normal alone a drop under a wire crept round its edge and up its side, and a
+  drop on a pillar ran over the pillar's edge.)
 - Share of the line: in 2-D the band particles within one support share a contact point's
   force; in 3-D a chord of the line through the support sphere (pi/4 of its diameter on
   average). This sets only how fast the line moves, not where it stops.
@@ -59,13 +68,15 @@ class ContactAngle:
     """Young's force on the melt's contact band and its reaction on the solid (see the
     module's docstring)."""
 
+    pin = True  # Gibbs's criterion at the solid's edges (False: the blended normal alone, for tests)
+
     def __init__(self, angle_deg: float, kernel: Kernel, h: float, domain: Domain, threshold: float):
         self.cos = math.cos(math.radians(angle_deg))
         self.kernel, self.h, self.domain, self.threshold = kernel, h, domain, threshold
         self.reaction = None  # (N, d) force booked on the solid at the last evaluation
         self.band = None  # (rows,) bool: the contact band among the melt rows at the last evaluation
 
-    def select(self, state, nb: torch.Tensor, mask: torch.Tensor):
+    def select(self, state, nb: torch.Tensor, mask: torch.Tensor, table=None):
         """At a pair selection: the melt rows of the table ``nb`` (``mask``: its real entries)
         with solid (any non-fluid material) in it. Only they can meet solid within a kernel
         support before the next selection (the table reaches a skin further), so the band is
@@ -74,6 +85,28 @@ class ContactAngle:
         self.sub = torch.nonzero(solid.any(1)).squeeze(1)  # (a selection may read the host)
         self.nb_c, self.mask_c = nb.index_select(0, self.sub), mask.index_select(0, self.sub).to(state.x.dtype)
         self.solid_nb = solid.index_select(0, self.sub).to(state.x.dtype)
+        self.ns_nb = self.ns_ok = None
+        if table is not None and self.pin:
+            self.ns_nb, self.ns_ok = self.solid_normals(state, table)
+
+    def solid_normals(self, state, table):
+        """The outward normals of the solid's surface particles among the contact rows' solid
+        neighbours, per table entry: (R, k, d) and (R, k) bool (a surface normal is known:
+        the solid neighbour has a row in ``table`` and its solid-only colour gradient exceeds
+        the surface threshold). The solid's colour is its own, c = 1 in the solid only."""
+        nb = self.nb_c
+        solid = self.solid_nb > 0
+        S = torch.unique(nb[solid])
+        nbS, maskS = table.gather(S)
+        sol = gather_nb(state.phase != Phase.FLUID, nbS) & maskS
+        dxp, r = pair_geometry(state.x, S, nbS, self.domain, self.h)
+        w, _ = colour_pair_weights(state.m, state.rho, S, nbS, r, self.kernel, self.h)
+        gs = ((w * sol.to(w.dtype)).unsqueeze(-1) * dxp).sum(1)
+        gn = torch.sqrt(dot(gs, gs))
+        ok = (gn * self.h > self.threshold) & table.has_row().index_select(0, S)
+        n_full = torch.zeros_like(state.x).index_copy_(0, S, -gs / gn.clamp_min(1e-300).unsqueeze(-1))
+        ok_full = torch.zeros(state.n, dtype=torch.bool, device=state.x.device).index_copy_(0, S, ok)
+        return gather_nb(n_full, nb), gather_nb(ok_full, nb) & solid
 
     def contact_band(self, state, rows, g: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
         """The melt rows ``rows`` in the contact band (R,) bool: surface particles (``on``)
@@ -125,6 +158,23 @@ class ContactAngle:
         z_d = (up * beside).sum(1) / wsum
         k_d = (gather_nb(kappa, nb) * beside).sum(1) / wsum / (state.dim - 1)
         cos_d = dot(n_d, self.n_w) - k_d * z_d
+        if self.ns_nb is not None:
+            # Gibbs's criterion: where the solid's surface turns within the support (an edge),
+            # the line stays where theta_eq lies between the angles the melt's surface makes
+            # with the solid's normals there; outside that range it is driven by the nearest
+            cand = dot(n_d.unsqueeze(1), self.ns_nb) - (k_d * z_d).unsqueeze(1)
+            # (a normal of the solid that faces away from the melt particle, e.g. the far
+            # side of a thin plate, is no part of the surface the line sits on)
+            facing = dot(dxp, self.ns_nb) > -0.5 * r
+            use = self.ns_ok & (Wk > 0) & facing
+            big = torch.finfo(cand.dtype).max
+            c_lo = torch.where(use, cand, torch.full_like(cand, big)).amin(1)
+            c_hi = torch.where(use, cand, torch.full_like(cand, -big)).amax(1)
+            has = use.any(1)
+            lo = torch.minimum(torch.where(has, c_lo, cos_d), cos_d)
+            hi = torch.maximum(torch.where(has, c_hi, cos_d), cos_d)
+            self.spread = torch.where(has, hi - lo, torch.zeros_like(lo))
+            cos_d = torch.clamp(torch.full_like(cos_d, self.cos), lo, hi)
         n_rows = rows.shape[0]
         # the surface's curvature and normal beside the band
         self.k_band = torch.zeros(n_rows, dtype=Wk.dtype, device=Wk.device).index_copy_(0, sub, k_d * (state.dim - 1))
