@@ -85,28 +85,34 @@ class ContactAngle:
         self.sub = torch.nonzero(solid.any(1)).squeeze(1)  # (a selection may read the host)
         self.nb_c, self.mask_c = nb.index_select(0, self.sub), mask.index_select(0, self.sub).to(state.x.dtype)
         self.solid_nb = solid.index_select(0, self.sub).to(state.x.dtype)
-        self.ns_nb = self.ns_ok = None
+        self.S = None
         if table is not None and self.pin:
-            self.ns_nb, self.ns_ok = self.solid_normals(state, table)
+            # the solid neighbours of the contact rows, and their rows of the table: their
+            # surface normals are evaluated at every step from the state then (solid_normals)
+            solid = self.solid_nb > 0
+            self.S, inv = torch.unique(torch.where(solid, nb.index_select(0, self.sub), -1), return_inverse=True)
+            self.at_S = inv  # (R, k): each entry's place in S (S[0] = -1 where some entry is not solid)
+            S = self.S.clamp_min(0)
+            self.nbS, maskS = table.gather(S)
+            self.solS = (gather_nb(state.phase != Phase.FLUID, self.nbS) & maskS).to(state.x.dtype)
+            self.rowS = table.has_row().index_select(0, S) & (self.S >= 0)
 
-    def solid_normals(self, state, table):
+    def solid_normals(self, state):
         """The outward normals of the solid's surface particles among the contact rows' solid
         neighbours, per table entry: (R, k, d) and (R, k) bool (a surface normal is known:
-        the solid neighbour has a row in ``table`` and its solid-only colour gradient exceeds
-        the surface threshold). The solid's colour is its own, c = 1 in the solid only."""
-        nb = self.nb_c
-        solid = self.solid_nb > 0
-        S = torch.unique(nb[solid])
-        nbS, maskS = table.gather(S)
-        sol = gather_nb(state.phase != Phase.FLUID, nbS) & maskS
-        dxp, r = pair_geometry(state.x, S, nbS, self.domain, self.h)
-        w, _ = colour_pair_weights(state.m, state.rho, S, nbS, r, self.kernel, self.h)
-        gs = ((w * sol.to(w.dtype)).unsqueeze(-1) * dxp).sum(1)
+        the solid neighbour has a row in the table and its solid-only colour gradient exceeds
+        the surface threshold). The solid's colour is its own, c = 1 in the solid only; it is
+        evaluated on this state (a function of the state alone: a restart or a decomposed run
+        reads the same normals)."""
+        S = self.S.clamp_min(0)
+        dxp, r = pair_geometry(state.x, S, self.nbS, self.domain, self.h)
+        w, _ = colour_pair_weights(state.m, state.rho, S, self.nbS, r, self.kernel, self.h)
+        gs = ((w * self.solS).unsqueeze(-1) * dxp).sum(1)
         gn = torch.sqrt(dot(gs, gs))
-        ok = (gn * self.h > self.threshold) & table.has_row().index_select(0, S)
-        n_full = torch.zeros_like(state.x).index_copy_(0, S, -gs / gn.clamp_min(1e-300).unsqueeze(-1))
-        ok_full = torch.zeros(state.n, dtype=torch.bool, device=state.x.device).index_copy_(0, S, ok)
-        return gather_nb(n_full, nb), gather_nb(ok_full, nb) & solid
+        ok = (gn * self.h > self.threshold) & self.rowS
+        ns = -gs / gn.clamp_min(1e-300).unsqueeze(-1)
+        return ns.index_select(0, self.at_S.reshape(-1)).reshape(*self.at_S.shape, -1), \
+            ok.index_select(0, self.at_S.reshape(-1)).reshape(self.at_S.shape) & (self.solid_nb > 0)
 
     def contact_band(self, state, rows, g: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
         """The melt rows ``rows`` in the contact band (R,) bool: surface particles (``on``)
@@ -158,15 +164,16 @@ class ContactAngle:
         z_d = (up * beside).sum(1) / wsum
         k_d = (gather_nb(kappa, nb) * beside).sum(1) / wsum / (state.dim - 1)
         cos_d = dot(n_d, self.n_w) - k_d * z_d
-        if self.ns_nb is not None:
+        if self.S is not None:
+            ns_nb, ns_ok = self.solid_normals(state)
             # Gibbs's criterion: where the solid's surface turns within the support (an edge),
             # the line stays where theta_eq lies between the angles the melt's surface makes
             # with the solid's normals there; outside that range it is driven by the nearest
-            cand = dot(n_d.unsqueeze(1), self.ns_nb) - (k_d * z_d).unsqueeze(1)
+            cand = dot(n_d.unsqueeze(1), ns_nb) - (k_d * z_d).unsqueeze(1)
             # (a normal of the solid that faces away from the melt particle, e.g. the far
             # side of a thin plate, is no part of the surface the line sits on)
-            facing = dot(dxp, self.ns_nb) > -0.5 * r
-            use = self.ns_ok & (Wk > 0) & facing
+            facing = dot(dxp, ns_nb) > -0.5 * r
+            use = ns_ok & (Wk > 0) & facing
             big = torch.finfo(cand.dtype).max
             c_lo = torch.where(use, cand, torch.full_like(cand, big)).amin(1)
             c_hi = torch.where(use, cand, torch.full_like(cand, -big)).amax(1)
