@@ -25,26 +25,9 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.analytic import tate_mass  # noqa: E402
-from torchsph.caps import detach  # noqa: E402
+from torchsph.caps import PENDANT_LIQUIDS as MATERIALS, detach  # noqa: E402
 
 CASE = ROOT / "cases" / "pendant_drop"
-# the liquids: the case's viscous water-like liquid, and Table 1's steel (sigma, rho). The load a
-# drop falls at, slowly loaded, does not depend on the viscosity; steel's own (1-5 mPa s,
-# Ohnesorge number ~1e-3) left the drop ringing and the measured load to the start-up: with
-# Table 1's 0.001 Pa s the melt that climbed the wire's side at dx = 0.2 mm tore at 13 ms; with
-# 0.005 Pa s the drop fell at 0.70-1.12 of pi d sigma as the settling drag lasted 10 or 3 ms,
-# and at 0.38 during the drag at alpha = 1.09 sigma. So the steel drop is given 0.5 Pa s
-# (Ohnesorge 0.14, the water-like case's 0.22): quasi-static loading, the same static answer.
-# c0 keeps the Laplace pressure 2 sigma / R = 3.3 kPa below 0.5 % compression; gravity reaches
-# 5x the load over 0.11 s (50 capillary times sqrt(rho R^3 / sigma) = 2.2 ms); the settling drag
-# acts over the first 10 ms (g below half the load); a neck may stretch to 60 % as it pinches.
-MATERIALS = {
-    "water-like": {"sigma": 0.05, "rho": 1000.0, "over": ["run.t_end_s=0.1"]},  # the whole ramp
-    "steel": {"sigma": 1.63, "rho": 7890.0, "over": [
-        "fluid.rho0_kg_m3=7890.0", "fluid.viscosity_Pa_s=0.5", "fluid.c0_m_s=10.0",
-        "fluid.gravity_m_s2=[0.0, 0.0, -1000.0]", "fluid.gravity_ramp_s=0.11", "run.t_end_s=0.11",
-        "numerics.damping_time_s=0.01", "numerics.max_compression=0.6"]},
-}
 
 
 def trial(mat: dict, dx: float, d_wire: float, alpha: float, law: str = "harkins-brown") -> dict:
