@@ -111,7 +111,7 @@ class ContactAngle:
         gn = torch.sqrt(dot(gs, gs))
         ok = (gn * self.h > self.threshold) & self.rowS
         ns = -gs / gn.clamp_min(1e-300).unsqueeze(-1)
-        return ns.index_select(0, self.at_S.reshape(-1)).reshape(*self.at_S.shape, -1), \
+        return ns.index_select(0, self.at_S.reshape(-1)).reshape(*self.at_S.shape, state.dim), \
             ok.index_select(0, self.at_S.reshape(-1)).reshape(self.at_S.shape) & (self.solid_nb > 0)
 
     def contact_band(self, state, rows, g: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
