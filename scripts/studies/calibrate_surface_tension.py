@@ -6,7 +6,7 @@ q = m g / (2 pi r sigma f) measured at the pinch-off says how the model's surfac
 coefficient alpha compares with the sigma it stands for (q = 1: consistent).
 
     python scripts/studies/calibrate_surface_tension.py --tate              # q at alpha = sigma, wires of 1 and 1.5 mm
-    python scripts/studies/calibrate_surface_tension.py --material steel --dx 2e-4 1.5e-4 1e-4   # alpha(sigma, dx)
+    python scripts/studies/calibrate_surface_tension.py --material steel --dx 1.25e-4 1e-4 8.75e-5   # alpha(sigma, dx)
 
 The calibration finds, per dx, the alpha at which the drop detaches at Tate's load (q = 1):
 a bisection on alpha over a bracket [alpha with q < 1, alpha with q > 1], whose next trial is
