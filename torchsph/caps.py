@@ -91,20 +91,20 @@ def fallen_mass(z: torch.Tensor, m: torch.Tensor, dx: float, min_fraction: float
 
 
 # The pendant drop's liquids (overrides of cases/pendant_drop, for scripts/studies/
-# calibrate_surface_tension.py and tests/test_pendant.py): the case's viscous water-like
-# liquid, and Table 1's steel (sigma, rho). The load a drop falls at, slowly loaded, does not depend on the viscosity; steel's own (1-5 mPa s,
-# Ohnesorge number ~1e-3) left the drop ringing and the measured load to the start-up: with
-# Table 1's 0.001 Pa s the melt that climbed the wire's side at dx = 0.2 mm tore at 13 ms; with
-# 0.005 Pa s the drop fell at 0.70-1.12 of pi d sigma as the settling drag lasted 10 or 3 ms,
-# and at 0.38 during the drag at alpha = 1.09 sigma. So the steel drop is given 0.5 Pa s
-# (Ohnesorge 0.14, the water-like case's 0.22): quasi-static loading, the same static answer.
-# c0 keeps the Laplace pressure 2 sigma / R = 3.3 kPa below 0.5 % compression; gravity reaches
-# 1 000 m/s^2 over 0.22 s (the drop falls at ~150 m/s^2, ~34 ms: 15 capillary times
-# sqrt(rho R^3 / sigma) = 2.2 ms); the settling drag acts over the first 10 ms (g below a third
-# of the load). Loaded twice as fast (0.11 s) the drop fell 2-4 ms after the drag ended, at a
-# load that fell as alpha rose (dx = 0.2 mm: 127 m/s^2 at alpha = sigma, 114 at 1.09 sigma):
-# the drag's release, not a static limit (docs/VERIFICATION.md 5.1, stop 33). A neck may stretch
-# to 60 % as it pinches.
+# calibrate_surface_tension.py and tests/test_pendant.py): the case's viscous water-like liquid,
+# and Table 1's steel (sigma, rho). The load a drop falls at, slowly loaded, does not depend on
+# the viscosity; steel's own (1-5 mPa s, Ohnesorge number ~1e-3) left the drop ringing and the
+# measured load to the start-up: with Table 1's 0.001 Pa s the melt that climbed the wire's side
+# at dx = 0.2 mm tore at 13 ms; with 0.005 Pa s the drop fell at 0.70-1.12 of pi d sigma as the
+# settling drag lasted 10 or 3 ms, and at 0.38 during the drag at alpha = 1.09 sigma. So the
+# steel drop is given 0.5 Pa s (Ohnesorge 0.14, the water-like case's 0.22): quasi-static
+# loading, the same static answer. c0 keeps the Laplace pressure 2 sigma / R = 3.3 kPa below
+# 0.5 % compression; gravity reaches 1 000 m/s^2 over 0.22 s (the drop falls at ~150 m/s^2,
+# ~34 ms: 15 capillary times sqrt(rho R^3 / sigma) = 2.2 ms); the settling drag acts over the
+# first 10 ms (g below a third of the load). Loaded twice as fast (0.11 s) the drop fell 2-4 ms
+# after the drag ended, at a load that fell as alpha rose (dx = 0.2 mm: 127 m/s^2 at alpha =
+# sigma, 114 at 1.09 sigma): the drag's release, not a static limit (docs/VERIFICATION.md 5.1,
+# stop 33). A neck may stretch to 60 % as it pinches.
 PENDANT_LIQUIDS = {
     "water-like": {"sigma": 0.05, "rho": 1000.0, "over": ["run.t_end_s=0.1"]},  # the whole ramp
     "steel": {"sigma": 1.63, "rho": 7890.0, "over": [

@@ -90,7 +90,7 @@ class ContactAngle:
             # the solid neighbours of the contact rows, and their rows of the table: their
             # surface normals are evaluated at every step from the state then (solid_normals)
             solid = self.solid_nb > 0
-            self.S, inv = torch.unique(torch.where(solid, nb.index_select(0, self.sub), -1), return_inverse=True)
+            self.S, inv = torch.unique(torch.where(solid, self.nb_c, -1), return_inverse=True)
             self.at_S = inv  # (R, k): each entry's place in S (S[0] = -1 where some entry is not solid)
             S = self.S.clamp_min(0)
             self.nbS, maskS = table.gather(S)
