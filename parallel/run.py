@@ -56,6 +56,7 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | Non
          "E0": sums[-1] if sums else None,
          "n_builds": sim.nl.n_builds, "rng": torch.get_rng_state(), "extra": extra, "written": time.time(),
          "body_velocity": sim.body_velocity.cpu(), "stale": sim.stale,
+         "active_age": sim.active_set.age if sim.active_set is not None else 0,
          "feeder": feeder, "escape": escape}
     write(d, path)
 
@@ -76,6 +77,8 @@ def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | No
             bv = torch.cat([bv, sim.body_velocity[bv.shape[0]:]])
         sim.body_velocity = bv
         sim.stale = d["stale"]
+        if sim.active_set is not None:
+            sim.active_set.age = d.get("active_age", 0)
     if sim.feeder is not None and d.get("feeder") is not None:
         sim.feeder.load_state_dict(d["feeder"])
         if comm.rank != 0:  # the totals stay on rank 0; each rank counts its own from here

@@ -7,7 +7,7 @@ import torch
 from conftest import CASES
 from torchsph.config import load_case
 from torchsph.fluid import embed
-from torchsph.neighbors import NeighbourTable
+from torchsph.neighbors import NeighbourTable, build_table
 from torchsph.runner import make_simulation, run_steps
 from torchsph.state import Phase
 from torchsph.thermal import conduction_pairs
@@ -177,3 +177,55 @@ def test_a_selection_reads_only_work_particles_with_a_table_row():
     th.select_pairs(st, part, active=act, work=work, x_ref=sim.nl.x_ref, new_table=True)
     q_part = th.heat_rate(st, st.T)
     assert torch.allclose(q_part, q_whole, rtol=1e-12, atol=1e-12 * float(q_whole.abs().max()))
+
+
+def test_an_operator_that_follows_a_new_row_set_is_the_one_made_afresh():
+    """The active set moves between builds: the operator carries the rows that stay, makes the
+    new rows' entries and drops the left rows' (``follow``). It must be the operator made
+    afresh for the new rows, bit for bit (a restart makes it afresh), with some particles no
+    longer steady (melted) and two bodies."""
+    from torchsph.heat_operator import ConductionOperator
+    st, c = cloud_conduction(n=600, seed=3)
+    n = st.n
+    g = torch.Generator().manual_seed(5)
+    body = (st.x[:, 0] > 0.8e-3).long()  # two bodies: no rigid pairs across x = 0.8 mm
+    steady = torch.rand(n, generator=g, dtype=torch.float64) > 0.1
+    nb, mask = build_table(st.x, 2 * c.h, c.domain)
+    rows_a = torch.nonzero(st.x[:, 0] < 0.6e-3).squeeze(1)
+    rows_b = torch.nonzero((st.x[:, 0] > 0.3e-3) & (st.x[:, 0] < 0.9e-3)).squeeze(1)
+    args = (c.kernel, c.h, c.domain)
+    a = ConductionOperator(rows_a, nb[rows_a], mask[rows_a], st.x, steady, body, *args)
+    steady_b = steady & (torch.rand(n, generator=g, dtype=torch.float64) > 0.05)  # some melted since
+    followed = a.follow(rows_b, nb[rows_b], mask[rows_b], st.x, steady_b, body)
+    afresh = ConductionOperator(rows_b, nb[rows_b], mask[rows_b], st.x, steady_b, body, *args)
+    for name in ("g_row", "g_i", "g_j", "g_f", "crow", "row_of"):
+        assert torch.equal(getattr(followed, name), getattr(afresh, name)), name
+    assert followed.main_body == afresh.main_body and followed.n_static == afresh.n_static > 0
+    # the carried rows were not made again: the new rows alone hold fewer entries
+    new_rows = int((a.row_of[rows_b] < 0).sum())
+    assert 0 < new_rows < rows_b.numel()
+
+
+def test_rigid_marks_from_the_few_rows_equal_every_rows_own():
+    """The rigid marks (solid, not next to melt, all neighbours firm and of its body) read
+    from the rows outside the largest body and its non-firm rows (the table is symmetric)
+    equal the marks read from every working row, through a deposition run with melt, a fed
+    wire and partial rebuilds, at every selection."""
+    from torchsph.thermal import rigid_marks, rigid_marks_direct
+    cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3")
+    _, sim = make_simulation(cfg)
+    seen = {"checks": 0, "fluid": 0}
+    orig = sim.select_pairs
+
+    def checked(new_table=False):
+        orig(new_table)
+        s, table = sim.state, sim.nl.table
+        work = sim.active_set.work
+        fast = rigid_marks(s, table, work)
+        assert torch.equal(fast, rigid_marks_direct(s, table, work))
+        seen["checks"] += 1
+        seen["fluid"] += int((s.phase == Phase.FLUID).sum()) > 0 and bool((~fast & (s.phase == Phase.SOLID)).any())
+
+    sim.select_pairs = checked
+    run_steps(sim, steps=250)
+    assert seen["checks"] > 5 and seen["fluid"] > 0, seen

@@ -11,8 +11,9 @@ grown (voxel dilation, conservative: every particle within the distance is inclu
 - *work* = active dilated by one search radius: active plus a *halo* of inactive
   particles that enter the neighbour table as sources only, at their frozen temperature.
 
-The set is refreshed at every neighbour rebuild and whenever a frontier particle becomes
-a seed (checked every step). Error bound: an inactive particle is frozen at a
+The set is refreshed whenever a particle outside the core becomes a seed (checked every
+step; in a run that is a frontier particle), and at the next neighbour rebuild after
+``max_age`` rebuilds; otherwise a neighbour rebuild keeps it. Error bound: an inactive particle is frozen at a
 temperature within ``tol`` of ambient, and would have stayed within ``tol`` until it was
 activated (it is activated before heat crosses the frontier band), so the heat the halo
 does not take up changes no temperature by more than ``tol``; the energy it does not
@@ -78,6 +79,11 @@ class ActiveSet:
         self.search = search  # support + Verlet skin
         self.active = self.work = self.frontier = None
         self.n_refresh = 0
+        self.age = 0  # neighbour rebuilds since the last refresh
+
+    # rebuilds a set is kept for at most, when nothing makes it stale (the frontier check
+    # keeps it conservative; this bounds how far it may lag behind the heated zone)
+    max_age = 32
 
     def seeds(self, state, lit: torch.Tensor | None) -> torch.Tensor:
         from .state import Phase
@@ -94,11 +100,13 @@ class ActiveSet:
         self.frontier = self.active & ~core
         self.work = dilate(state.x, self.active, self.search)
         self.n_refresh += 1
+        self.age = 0
 
     def stale(self, state, lit: torch.Tensor | None) -> torch.Tensor:
-        """True when a frontier particle has become a seed (heat is near the edge): a 0-d
-        device tensor (the step reads it with its other decisions)."""
-        return (self.frontier & self.seeds(state, lit)).any()
+        """True when a particle outside the core has become a seed (heat is near the edge, or
+        a particle was heated from outside the step): a 0-d device tensor (the step reads it
+        with its other decisions). In a run a seed leaves the core only through the frontier."""
+        return (self.seeds(state, lit) & (self.frontier | ~self.active)).any()
 
     def pad(self, n: int):
         """New particles (appended) start outside every set until the next refresh."""
@@ -107,4 +115,4 @@ class ActiveSet:
 
     def to_dict(self) -> dict:
         return {"active": self.active, "work": self.work, "frontier": self.frontier,
-                "n_refresh": self.n_refresh}
+                "n_refresh": self.n_refresh, "age": self.age}

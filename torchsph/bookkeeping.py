@@ -43,10 +43,21 @@ def rigid_body(sim) -> torch.Tensor | None:
     return group == main
 
 
-def work_set(sim) -> torch.Tensor:
-    """Refresh the active set (at a neighbour rebuild) and return its work mask."""
-    sim.active_set.refresh(sim.state, rates.source_mask(sim))
-    return sim.active_set.work
+def work_set(sim, stale: bool = True) -> torch.Tensor:
+    """The active set's work mask at a neighbour rebuild, the set refreshed first when it is
+    ``stale`` (a frontier particle became a seed, particles were added or removed), when it
+    has none for these particles, or when it has kept its sets over ``ActiveSet.max_age``
+    rebuilds. Otherwise the sets are kept as they are: they stay conservative, since heat,
+    melt or a beam can only reach a particle outside the active set by crossing the
+    frontier first, which the step checks (:meth:`ActiveSet.stale`), and kept sets keep
+    the rows of the neighbour table and of the conduction operator (a refresh at every
+    rebuild changed them at nearly every rebuild of the full scene: a new operator each)."""
+    a = sim.active_set
+    if stale or a.work is None or a.work.shape[0] != sim.state.n or a.age >= a.max_age:
+        a.refresh(sim.state, rates.source_mask(sim))
+    else:
+        a.age += 1
+    return a.work
 
 
 def body_velocities(sim, state: ParticleState) -> torch.Tensor:

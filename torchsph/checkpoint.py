@@ -279,6 +279,7 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
         a = d["active"]
         sim.active_set.active, sim.active_set.work = to(a["active"]), to(a["work"])
         sim.active_set.frontier, sim.active_set.n_refresh = to(a["frontier"]), a["n_refresh"]
+        sim.active_set.age = a.get("age", 0)
     th = sim.thermal
     if th is not None and th.k.shape[0] != sim.state.n:  # particles were added (a fed wire)
         th.k = torch.full((sim.state.n,), th.prm.conductivity, dtype=dt, device=dev)

@@ -56,6 +56,26 @@ def material_factor(k_i, k_j, z_i, z_j):
     return 4.0 * k_i * k_j / (k_i + k_j) * (2.0 / (z_i + z_j))
 
 
+def rigid_entries(ri, rows, nb, mask, x_op, steady, body, kernel: Kernel, h: float, domain: Domain):
+    """The rigid pairs of the table rows ``nb``, ``mask`` (of the particles ``rows``, whose
+    places in the operator are ``ri``, ascending): both steady, of one body, inside the
+    kernel's support at ``x_op``. Returns (row, i, j, (1/r) dW/dr) in (row, column) order."""
+    n, kk = steady.shape[0], nb.shape[1]
+    at = torch.nonzero((mask & (nb != rows.unsqueeze(1))).reshape(-1)).squeeze(1)  # row-major
+    r = torch.div(at, kk, rounding_mode="floor")
+    j = nb.reshape(-1).index_select(0, at)
+    i = rows.index_select(0, r)
+    rigid = steady.index_select(0, i) & steady.index_select(0, j) & (body.index_select(0, i) == body.index_select(0, j))
+    c = torch.nonzero(rigid).squeeze(1)
+    r, i, j = r.index_select(0, c), i.index_select(0, c), j.index_select(0, c)
+    r2 = squared_distance(x_op.index_select(0, i), x_op.index_select(0, j), domain)
+    inside = torch.nonzero(r2 < kernel.radius(h) ** 2).squeeze(1)
+    order = torch.argsort(r.index_select(0, inside) * n + j.index_select(0, inside))  # canonical
+    keep = inside.index_select(0, order)
+    return (ri.index_select(0, r.index_select(0, keep)), i.index_select(0, keep), j.index_select(0, keep),
+            dwdr_over_r(r2.index_select(0, keep), kernel, h))
+
+
 class ConductionOperator:
     """Conduction over the rows ``rows`` (positions of the conducting particles).
 
@@ -74,32 +94,69 @@ class ConductionOperator:
         """``nb``, ``mask``: the table of ``rows``; ``x_op``, ``steady``: see the class."""
         self.rows, self.kernel, self.h, self.domain = rows, kernel, h, domain
         n, dev = steady.shape[0], rows.device
-        R, kk = nb.shape
-        at = torch.nonzero((mask & (nb != rows.unsqueeze(1))).reshape(-1)).squeeze(1)  # row-major
-        ri = torch.div(at, kk, rounding_mode="floor")
-        j = nb.reshape(-1).index_select(0, at)
-        i = rows.index_select(0, ri)
-        rigid = steady.index_select(0, i) & steady.index_select(0, j) & (body.index_select(0, i) == body.index_select(0, j))
-        c = torch.nonzero(rigid).squeeze(1)
-        ri, i, j = ri.index_select(0, c), i.index_select(0, c), j.index_select(0, c)
-        r2 = squared_distance(x_op.index_select(0, i), x_op.index_select(0, j), domain)
-        inside = torch.nonzero(r2 < kernel.radius(h) ** 2).squeeze(1)
-        order = torch.argsort(ri.index_select(0, inside) * n + j.index_select(0, inside))  # canonical
-        keep = inside.index_select(0, order)
-        self.g_row, self.g_i, self.g_j = ri.index_select(0, keep), i.index_select(0, keep), j.index_select(0, keep)
-        self.g_f = dwdr_over_r(r2.index_select(0, keep), kernel, h)
+        R = rows.numel()
+        self.g_row, self.g_i, self.g_j, self.g_f = rigid_entries(
+            torch.arange(R, device=dev), rows, nb, mask, x_op, steady, body, kernel, h, domain)
+        self._finish(R, n, steady, body)
+
+    def _finish(self, R: int, n: int, steady: torch.Tensor, body: torch.Tensor):
+        dev = self.rows.device
         self.crow = torch.zeros(R + 1, dtype=torch.long, device=dev)
         self.crow[1:] = torch.cumsum(torch.bincount(self.g_row, minlength=R), 0)
         self.row_of = torch.full((n,), -1, dtype=torch.long, device=dev).index_copy_(
-            0, rows, torch.arange(R, device=dev))
+            0, self.rows, torch.arange(R, device=dev))
         # the body most rigid rows belong to: its steady particles' pairs with each other are
         # all in G, so only the other particles' table rows are read for the moving pairs
-        counts = torch.bincount(body.index_select(0, rows)[steady.index_select(0, rows)])
+        counts = torch.bincount(body.index_select(0, self.rows)[steady.index_select(0, self.rows)])
         self.main_body = int(counts.argmax()) if counts.numel() else -1
         self.n_static = int(self.g_row.numel())
         self.n_dynamic = 0
         self.G = None
         self.built = False
+
+    def follow(self, rows: torch.Tensor, nb: torch.Tensor, mask: torch.Tensor, x_op: torch.Tensor,
+               steady: torch.Tensor, body: torch.Tensor) -> "ConductionOperator":
+        """The operator of another row set (same particles, same ``x_op``): the entries of
+        the rows that stay are carried (less those of particles no longer steady), only the
+        new rows' entries are made (``nb``, ``mask``: the table of ``rows``), the left rows'
+        are dropped. Every entry is a function of ``x_op`` and its pair alone and the order
+        is the canonical (row, column) one, so the result is bit for bit the operator
+        :meth:`__init__` makes of the same arguments, at the cost of the new rows only."""
+        n, dev = steady.shape[0], rows.device
+        R = rows.numel()
+        row_new = torch.full((n,), -1, dtype=torch.long, device=dev).index_copy_(
+            0, rows, torch.arange(R, device=dev))
+        # carried: row still there, both particles still steady (rows are sorted particle
+        # indices in both sets, so the carried entries stay in (row, column) order)
+        r_keep = row_new.index_select(0, self.g_i)
+        live = (r_keep >= 0) & steady.index_select(0, self.g_i) & steady.index_select(0, self.g_j)
+        c = torch.nonzero(live).squeeze(1)
+        k_row, k_i, k_j, k_f = (t.index_select(0, c) for t in (r_keep, self.g_i, self.g_j, self.g_f))
+        # made: the rows that are new
+        fresh = torch.nonzero(self.row_of.index_select(0, rows) < 0).squeeze(1)
+        n_row, n_i, n_j, n_f = rigid_entries(fresh, rows.index_select(0, fresh), nb.index_select(0, fresh),
+                                             mask.index_select(0, fresh), x_op, steady, body,
+                                             self.kernel, self.h, self.domain)
+        # merged in (row, column) order: the rows are disjoint, each part is in order, so an
+        # entry's place is its row's start plus its rank within its part's row
+        cnt_k = torch.bincount(k_row, minlength=R)
+        cnt_n = torch.bincount(n_row, minlength=R)
+        start = torch.cumsum(cnt_k + cnt_n, 0) - (cnt_k + cnt_n)
+        out = ConductionOperator.__new__(ConductionOperator)
+        out.rows, out.kernel, out.h, out.domain = rows, self.kernel, self.h, self.domain
+        total = int(k_row.numel() + n_row.numel())
+        out.g_row = torch.empty(total, dtype=torch.long, device=dev)
+        out.g_i, out.g_j = torch.empty_like(out.g_row), torch.empty_like(out.g_row)
+        out.g_f = torch.empty(total, dtype=self.g_f.dtype, device=dev)
+        for row, i, j, f, cnt in ((k_row, k_i, k_j, k_f, cnt_k), (n_row, n_i, n_j, n_f, cnt_n)):
+            first = torch.cumsum(cnt, 0) - cnt  # the part's own start of each row
+            dest = start.index_select(0, row) + torch.arange(row.numel(), device=dev) - first.index_select(0, row)
+            out.g_row.index_copy_(0, dest, row)
+            out.g_i.index_copy_(0, dest, i)
+            out.g_j.index_copy_(0, dest, j)
+            out.g_f.index_copy_(0, dest, f)
+        out._finish(R, n, steady, body)
+        return out
 
     def same_rows(self, rows: torch.Tensor, n: int) -> bool:
         return (rows.shape == self.rows.shape and self.row_of.shape[0] == n

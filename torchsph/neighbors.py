@@ -235,6 +235,12 @@ def brute_force_pairs(x: torch.Tensor, radius: float, domain: Domain):
     return ii[keep], jj[keep]
 
 
+def row_counts(mask: torch.Tensor) -> torch.Tensor:
+    """True entries per row of a boolean (R, k) mask, as int64 (summed as bytes: a bool sum
+    converts every entry to int64 first, twice as slow)."""
+    return mask.view(torch.uint8).sum(1, dtype=torch.int32).long()
+
+
 class NeighbourTable:
     """The neighbour lists of some particles (``rows``, sorted; the others have none), as a
     (R, k) table in the particles' numbering: row r lists the neighbours of ``rows[r]``,
@@ -242,10 +248,21 @@ class NeighbourTable:
     particles have rows, so the table's size follows them, not all N particles.
     :meth:`gather` reads the rows of any particles (an empty row for one without)."""
 
-    def __init__(self, rows: torch.Tensor, nb: torch.Tensor, mask: torch.Tensor, n: int):
+    def __init__(self, rows: torch.Tensor, nb: torch.Tensor, mask: torch.Tensor, n: int,
+                 slot: torch.Tensor | None = None, counts: torch.Tensor | None = None):
+        """``slot``, ``counts``: the row of each particle and each row's pair count, where the
+        caller has them (else made here, the counts when first asked for)."""
         self.rows, self.nb, self.mask, self.n = rows, nb, mask, n
-        self.slot = torch.full((n,), -1, dtype=torch.long, device=nb.device).index_copy_(
+        self.slot = slot if slot is not None else torch.full((n,), -1, dtype=torch.long, device=nb.device).index_copy_(
             0, rows, torch.arange(rows.numel(), device=nb.device))
+        self._counts = counts
+
+    @property
+    def counts(self) -> torch.Tensor:
+        """Pairs per row (R,)."""
+        if self._counts is None:
+            self._counts = row_counts(self.mask)
+        return self._counts
 
     @classmethod
     def dense(cls, nb: torch.Tensor, mask: torch.Tensor) -> "NeighbourTable":
@@ -284,7 +301,7 @@ class NeighbourTable:
         return nb, mask
 
     def n_pairs(self) -> int:
-        return int(self.mask.sum())
+        return int(self.counts.sum())
 
     def state_dict(self) -> dict:
         return {"rows": self.rows, "nb": self.nb, "mask": self.mask, "n": self.n}
@@ -415,12 +432,7 @@ class VerletList:
         if q.numel() > self.partial_limit * n_work:
             return False
         dev = x.device
-        # the body's mutual pairs stay where the table holds them; every other entry is freed
-        nb, keep = T.gather(srows)
-        k = T.k
-        S = srows.numel()
-        col = srows.unsqueeze(1)
-        keep = keep & st.index_select(0, nb.reshape(-1)).view_as(nb)
+        rows = torch.nonzero(alive).squeeze(1)  # the new table's rows: body rows kept and rows searched
         # rows searched afresh, among the working particles
         if work is None:
             qnb, qmask = build_table(x, self.radius + self.skin, self.domain, rows=q)
@@ -433,6 +445,24 @@ class VerletList:
         ti, tj = qj.index_select(0, back), qi.index_select(0, back)  # row ti gains tj
         perm = torch.sort(ti, stable=True).indices
         ti, tj = ti.index_select(0, perm), tj.index_select(0, perm)
+        # the body rows that change: those with a partner that is not of the body (freed) or
+        # that gain one. Where the working rows are the table's own (the active set kept), a
+        # freed partner is a searched row (every partner is working, and the working rows not
+        # of the body are the searched ones) and the table is symmetric, so they are the body
+        # rows listed in the searched rows' old rows, or gaining: the others stay as they are
+        # and are not read (the table is copied whole once)
+        same = rows.shape == T.rows.shape and bool(torch.equal(rows, T.rows))
+        if same:
+            onb, omask = T.gather(q, within=True)
+            touched = torch.zeros(N, dtype=torch.bool, device=dev)
+            touched.index_fill_(0, onb[omask], True).index_fill_(0, ti, True)
+            srows = torch.nonzero(touched & st).squeeze(1)
+        # the body's mutual pairs stay where the table holds them; every other entry is freed
+        nb, keep = T.gather(srows)
+        k = T.k
+        S = srows.numel()
+        col = srows.unsqueeze(1)
+        keep = keep & st.index_select(0, nb.reshape(-1)).view_as(nb)
         ls = torch.searchsorted(srows, ti)  # ti's place among the body rows
         gain = torch.bincount(ls, minlength=S)
         grows = torch.nonzero(gain).squeeze(1)
@@ -456,10 +486,16 @@ class VerletList:
             flat_nb.index_copy_(0, slots, tj)
             flat_mask.index_fill_(0, slots, True)
         # the new table: the working rows, i.e. the body rows kept and the rows searched afresh
-        rows = torch.nonzero(alive).squeeze(1)  # every one is a body row kept or a row searched
         W = rows.numel()
-        nb_new = torch.empty((W, k2), dtype=nb.dtype, device=dev)
-        mask_new = torch.empty((W, k2), dtype=torch.bool, device=dev)
+        if same:  # the old table, its changed rows written over
+            nb_new, mask_new = T.nb, T.mask
+            if k2 > k:
+                nb_new = torch.cat([nb_new, T.rows.unsqueeze(1).expand(W, k2 - k)], 1)
+                mask_new = torch.cat([mask_new, torch.zeros((W, k2 - k), dtype=torch.bool, device=dev)], 1)
+            # else in place: the table's arrays are read by no one else (selections gather copies)
+        else:
+            nb_new = torch.empty((W, k2), dtype=nb.dtype, device=dev)
+            mask_new = torch.empty((W, k2), dtype=torch.bool, device=dev)
         if S:
             at = torch.searchsorted(rows, srows)
             nb_new.index_copy_(0, at, nb)
@@ -472,7 +508,11 @@ class VerletList:
                 qmask = torch.cat([qmask, torch.zeros((q.numel(), k2 - w), dtype=torch.bool, device=dev)], 1)
             nb_new.index_copy_(0, at, qnb)
             mask_new.index_copy_(0, at, qmask)
-        self.table = NeighbourTable(rows, nb_new, mask_new, N)
+        counts = None
+        if same and T._counts is not None:  # the rows' pair counts: the changed rows' anew
+            ch = torch.cat([srows, q])
+            counts = T._counts.clone().index_copy_(0, T.slot.index_select(0, ch), row_counts(mask_new.index_select(0, T.slot.index_select(0, ch))))
+        self.table = NeighbourTable(rows, nb_new, mask_new, N, slot=T.slot if same else None, counts=counts)
         # the body's rows searched now hold all their pairs with the working particles, so
         # they join the body set: the next partial rebuild keeps them instead of searching
         # them again (a particle that joins the work set is searched once)

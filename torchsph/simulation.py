@@ -133,8 +133,9 @@ class Simulation:
 
     # --- neighbours ---------------------------------------------------------
     def refresh_pairs(self, force: bool = False):
-        subset = (lambda: bookkeeping.work_set(self)) if self.active_set is not None else None
-        force = force or self.stale
+        stale = self.stale
+        subset = (lambda: bookkeeping.work_set(self, stale)) if self.active_set is not None else None
+        force = force or stale
         if not force and self.comm.size > 1:  # all processes rebuild at the same steps
             force = self.comm.any(self.nl.needs_rebuild(self.state.x, self.moving_rows()))
             if not force:

@@ -21,7 +21,7 @@ class PlanStats:
         s = sim.state
         cur = {}
         table = sim.nl.table
-        per_row = table.mask.sum(1)  # the table's rows (the work set's, with an active set)
+        per_row = table.counts  # the table's rows (the work set's, with an active set)
         nbuilt = max(int((per_row > 0).sum()), 1)
         self.n = s.n
         own = sim.comm.owned(sim)

@@ -221,6 +221,59 @@ def wall_temperature_pairs(x, T, rows, nb, mask, kernel: Kernel, h: float, domai
     return (gather_nb(T, nb) * Wk).sum(1), Wk.sum(1)
 
 
+def rigid_marks_direct(state: ParticleState, table, work=None) -> torch.Tensor:
+    """:func:`rigid_marks` from every working row's own neighbours."""
+    fluid = state.phase == Phase.FLUID
+    solid = state.phase == Phase.SOLID
+    w = None if work is None else torch.nonzero(work & table.has_row()).squeeze(1)  # (decomposed: outer ghosts have no row)
+    nbw, mw = table.gather(torch.arange(state.n, device=state.x.device) if w is None else w, within=True)
+    # solid next to melt is the melt's wall: its density follows the melt's pressure
+    firm_w = (solid if w is None else solid.index_select(0, w)) & ~(gather_nb(fluid, nbw) & mw).any(1)
+    firm = firm_w if w is None else solid.index_copy(0, w, firm_w)
+    body_w = state.body if w is None else state.body.index_select(0, w)
+    same = (gather_nb(firm, nbw) & (gather_nb(state.body, nbw) == body_w.unsqueeze(1))) | ~mw
+    rigid_w = firm_w & same.all(1)
+    return rigid_w if w is None else firm.index_copy(0, w, rigid_w)
+
+
+def rigid_marks(state: ParticleState, table, work=None) -> torch.Tensor:
+    """Per particle: solid, not next to melt (solid next to melt is the melt's wall: its
+    density follows the melt's pressure), and so are all its neighbours, of its body. Only
+    the rows of the table's ``work`` set (None: all) are read: the others have no neighbours
+    (a solid one is rigid).
+
+    Read from the few rows that can make a particle not rigid: the table is symmetric, so
+    a particle next to melt is a partner of a melt row, and a particle of the largest body
+    is not rigid exactly when a partner is not firm or of another body, i.e. a partner
+    whose own row is one of those few (not firm, or not of that body), which marks it. Only
+    the rows of the particles outside that body, or not firm, are read, not the body's
+    bulk. Where a working particle has no row (a decomposed run's outer ghosts) its
+    partners cannot be marked from it: :func:`rigid_marks_direct` reads every row."""
+    n, dev = state.n, state.x.device
+    has = table.has_row()
+    if work is not None and not bool((work & ~has).any()):
+        work = None  # every working particle has a row
+    if work is not None or table.rows.numel() == 0:
+        return rigid_marks_direct(state, table, work)
+    solid = state.phase == Phase.SOLID
+    fluid = torch.nonzero((state.phase == Phase.FLUID) & has).squeeze(1)
+    fnb, fm = table.gather(fluid, within=True)
+    near_melt = torch.zeros(n, dtype=torch.bool, device=dev).index_fill_(0, fnb[fm], True)
+    firm = solid & ~near_melt
+    rb = state.body.index_select(0, table.rows)
+    fr = rb[firm.index_select(0, table.rows)]
+    main = int(torch.bincount(fr).argmax()) if fr.numel() else -1
+    # the rows that can unmake a neighbour's rigidity, or whose own rigidity is read directly
+    few = torch.nonzero(has & (~firm | (state.body != main))).squeeze(1)
+    nb, m = table.gather(few, within=True)
+    marked = torch.zeros(n, dtype=torch.bool, device=dev).index_fill_(0, nb[m], True)
+    rigid = firm & ~(marked & (state.body == main))  # the body's particles: no such partner
+    # the other rows, each from its own neighbours
+    body_f = state.body.index_select(0, few)
+    same = (gather_nb(firm, nb) & (gather_nb(state.body, nb) == body_f.unsqueeze(1))) | ~m
+    return rigid.index_copy(0, few, firm.index_select(0, few) & same.all(1))
+
+
 @dataclass
 class Inversion:
     """Temperatures from :meth:`Conduction.to_temperature_unchecked`: ``T``, and ``bad``
@@ -283,10 +336,17 @@ class Conduction:
         # selections, the 2-rank deposition test left the single-process run by 2e-6 in t
         # after 300 steps; made anew, it agrees to 1e-10)
         comm = getattr(self, "comm", None)
-        keep = (op is not None and self.steady is not None and self.steady.shape[0] == state.n
-                and self.x_op is not None and self.x_op.shape[0] == state.n and op.same_rows(self.rows, state.n)
-                and not (comm is not None and comm.size > 1) and not self.provisional)
-        if new_table and not keep:  # G anew at this neighbour build's positions
+        reuse = (op is not None and self.steady is not None and self.steady.shape[0] == state.n
+                 and self.x_op is not None and self.x_op.shape[0] == state.n and op.row_of.shape[0] == state.n
+                 and not (comm is not None and comm.size > 1) and not self.provisional)
+        keep = reuse and op.same_rows(self.rows, state.n)
+        if reuse and not keep and new_table:
+            # another row set (the active set moved): G follows it, carrying the rows that
+            # stay, unless enough of its rows froze again since G was made (solid, not
+            # steady: their pairs are evaluated every step) that G is worth making anew
+            refrozen = int((solid & ~self.steady).index_select(0, self.rows).sum())
+            reuse = refrozen <= self.refreeze_limit * self.rows.numel()
+        if new_table and not reuse:  # G anew at this neighbour build's positions
             self.steady, self.x_op, self.provisional = solid, x_ref, False
         elif (self.steady is None or self.steady.shape[0] != state.n or self.x_op is None
               or self.x_op.shape[0] != state.n):
@@ -296,9 +356,11 @@ class Conduction:
             self.provisional = True
         else:  # a phase change, or G kept: melt leaves it, what froze joins only when G is made anew
             self.steady = self.steady & solid
-        if not keep:
+        if not reuse:
             op = self.op = ConductionOperator(self.rows, self.nb, mask_r, self.x_op,
                                               self.steady, state.body, self.kernel, self.h, self.domain)
+        elif not keep:
+            op = self.op = op.follow(self.rows, self.nb, mask_r, self.x_op, self.steady, state.body)
         op.select(table, self.steady, state.body, work)
         self.rows_w = torch.nonzero(wall if work is None else wall & work).squeeze(1)
         own = getattr(self, "owned", None)  # (ghosts off the rows: their owners count them)
@@ -350,17 +412,7 @@ class Conduction:
         """Per particle: solid, not next to melt, and so are all its neighbours, of its body.
         Only the rows of the table's ``work`` set (None: all) are read: the others have no
         neighbours (a solid one is rigid)."""
-        fluid = state.phase == Phase.FLUID
-        solid = state.phase == Phase.SOLID
-        w = None if work is None else torch.nonzero(work & table.has_row()).squeeze(1)  # (decomposed: outer ghosts have no row)
-        nbw, mw = table.gather(torch.arange(state.n, device=state.x.device) if w is None else w, within=True)
-        # solid next to melt is the melt's wall: its density follows the melt's pressure
-        firm_w = (solid if w is None else solid.index_select(0, w)) & ~(gather_nb(fluid, nbw) & mw).any(1)
-        firm = firm_w if w is None else solid.index_copy(0, w, firm_w)
-        body_w = state.body if w is None else state.body.index_select(0, w)
-        same = (gather_nb(firm, nbw) & (gather_nb(state.body, nbw) == body_w.unsqueeze(1))) | ~mw
-        rigid_w = firm_w & same.all(1)
-        self.rigid = rigid_w if w is None else firm.index_copy(0, w, rigid_w)
+        self.rigid = rigid_marks(state, table, work)
         n = state.n
         for name in ("zeta", "area"):
             ok = getattr(self, f"{name}_ok")
@@ -461,6 +513,7 @@ class Conduction:
         return embed(rows, self.beam_power_rows(state, t, rows), state.n)
 
     beam_rows = None  # per beam: the positions in ``rows`` that it can reach until the next build
+    refreeze_limit = 0.02  # share of G's rows re-solidified (not in G) at which G is made anew
     provisional = False  # steady set guessed (arrays not carried): G is made anew at the next build
 
     def beam_candidates(self, x_ref: torch.Tensor, reach: float | None, comm) -> list | None:
