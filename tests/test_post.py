@@ -252,3 +252,15 @@ def test_pictures_frame_the_melt_and_say_when_there_is_none(tmp_path):
     except Exception as e:  # noqa: BLE001 - VTK raises various errors without an OpenGL context
         pytest.skip(f"VTK could not render off-screen here: {e}")
     assert drawn is False and not (tmp_path / "v.png").exists()
+
+
+def test_richardson_recovers_the_limit_and_the_order():
+    """f(h) = 2.26 + 0.8 h^1.7 at an uneven ladder: the limit and the order come back to
+    round-off; an oscillating sequence and two values are refused with a reason."""
+    h = [0.4, 0.3, 0.25, 0.2]
+    f = [2.26 + 0.8 * x**1.7 for x in h]
+    r = post.richardson(h, f)
+    assert abs(r["p"] - 1.7) < 1e-9 and abs(r["f0"] - 2.26) < 1e-12, r
+    r = post.richardson([0.4, 0.3, 0.2], [2.0, 2.3, 2.1])
+    assert math.isnan(r["f0"]) and "monotone" in r["why"]
+    assert math.isnan(post.richardson([0.3, 0.2], [2.0, 2.1])["f0"])

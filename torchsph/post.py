@@ -208,6 +208,39 @@ def default_steady_range(snap: dict, cfg: dict, start_skip: float = 2.0e-3, pool
     return -V * float(snap["time"]) + pool, -start_skip
 
 
+def richardson(h, f) -> dict:
+    """Richardson extrapolation to h -> 0 of values ``f`` at resolutions ``h`` (any order,
+    distinct), from the three finest: the observed order p solves
+    (f3 - f2) / (f2 - f1) = (h3^p - h2^p) / (h2^p - h1^p) (h1 < h2 < h3; bisection over
+    0.05 <= p <= 8), and f0 = f1 - (f2 - f1) / ((h2 / h1)^p - 1). With two values, or where
+    the three do not converge monotonically (the differences change sign, or no order in
+    that range fits), ``f0`` and ``p`` are NaN and ``why`` says so."""
+    pts = sorted(zip(h, f))
+    nan = float("nan")
+    if len(pts) < 3:
+        return {"f0": nan, "p": nan, "why": "fewer than three resolutions"}
+    (h1, f1), (h2, f2), (h3, f3) = pts[:3]
+    d1, d2 = f2 - f1, f3 - f2
+    if d1 == 0.0 or d2 == 0.0 or (d1 > 0) != (d2 > 0):
+        return {"f0": nan, "p": nan, "why": "not monotone in h (oscillating or flat)"}
+    ratio = d2 / d1
+
+    def g(p):
+        return (h3**p - h2**p) / (h2**p - h1**p) - ratio
+
+    lo, hi = 0.05, 8.0
+    if g(lo) * g(hi) > 0:
+        return {"f0": nan, "p": nan, "why": f"no order in [{lo}, {hi}] fits"}
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if g(lo) * g(mid) <= 0:
+            hi = mid
+        else:
+            lo = mid
+    p = 0.5 * (lo + hi)
+    return {"f0": f1 - d1 / ((h2 / h1) ** p - 1.0), "p": p, "why": ""}
+
+
 def fed_cross_section(history: list[dict], x_lo: float, x_hi: float, V_sub: float, rho0: float) -> float:
     """Cross-section (m^2) of the wire actually fed while the substrate-frame columns
     x_lo <= x0 <= x_hi passed under the wire (t = -x_hi/V ... -x_lo/V; ``wire_fed_kg`` of
