@@ -202,6 +202,8 @@ def plot(rows: list[dict], png: Path, title: str):
     ax.set_ylabel("|bead cross-section error| vs nominal")
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # ticks at the runs' own times
+    ax.set_xticks(w, [f"{x:.0f}" for x in w])
     fig.tight_layout()
     fig.savefig(png)
     print(f"wrote {png}")
