@@ -118,8 +118,12 @@ def analyse(d: Path, dx_mm: float) -> dict:
     last = read_snapshot(snaps[-1][1])
     lo, hi = default_steady_range(last, cfg)
     steady = steady_average(bead_profile(last, cfg), lo, hi)
-    settle = bead_settling(history, lo, hi, lag_s=0.05, tolerance=0.05)
     e = history[-1]
+    try:
+        settle = bead_settling(history, lo, hi, lag_s=0.05, tolerance=0.05)
+    except ValueError:  # a window shorter than the lag: nothing can have settled
+        settle = {"settled_m2": float("nan"), "settled_bins": 0,
+                  "bins": [{"area_m2": a} for x, a in zip(e["bin_centres_m"], e["added_area_m2"]) if lo <= x <= hi]}
     pool = e["melt_pool"]
     nominal = e["expected_area_m2"]
     fed = e["wire_fed_kg"]
