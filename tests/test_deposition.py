@@ -135,9 +135,11 @@ def test_with_wire_stall_the_feed_waits_on_solid_substrate_and_goes_on_once_the_
     assert info["wire_fed_kg"] == pytest.approx(cfg["fluid"]["rho0_kg_m3"] * scene.info["wire_area"] * feeder.fed)
     run_steps(sim, steps=20)
     assert float(s.x[(s.body == WIRE) & (s.phase == Phase.SOLID), 2].min()) == tip  # still resting
-    # melt the bottom layer: the wire is no longer blocked and moves on
+    # melt the bottom layer: the wire is no longer blocked and moves on (hot enough to stay
+    # above the liquidus through the step's conduction into the cold wire: the step decides
+    # melting on its end temperatures)
     bottom = wire & (s.x[:, 2] < tip + 0.5 * dx)
-    s.T = torch.where(bottom, torch.full_like(s.T, 1800.0), s.T)
+    s.T = torch.where(bottom, torch.full_like(s.T, 2500.0), s.T)
     s.T_peak = torch.maximum(s.T_peak, s.T)
     fed0 = feeder.fed
     run_steps(sim, steps=3)

@@ -85,12 +85,14 @@ class ActiveSet:
     # keeps it conservative; this bounds how far it may lag behind the heated zone)
     max_age = 32
 
-    def seeds(self, state, lit: torch.Tensor | None) -> torch.Tensor:
+    def seeds(self, state, lit: torch.Tensor | None, idx: torch.Tensor | None = None) -> torch.Tensor:
+        """The seed mask, of every particle or (``idx``) of those particles only."""
         from .state import Phase
 
-        s = (state.phase == Phase.FLUID) | ((state.T - self.ambient).abs() > self.tol)
+        phase, T = (state.phase, state.T) if idx is None else (state.phase.index_select(0, idx), state.T.index_select(0, idx))
+        s = (phase == Phase.FLUID) | ((T - self.ambient).abs() > self.tol)
         if lit is not None:
-            s = s | lit
+            s = s | (lit if idx is None else lit.index_select(0, idx))
         return s
 
     def refresh(self, state, lit: torch.Tensor | None):
@@ -102,11 +104,29 @@ class ActiveSet:
         self.n_refresh += 1
         self.age = 0
 
-    def stale(self, state, lit: torch.Tensor | None) -> torch.Tensor:
+    def stale(self, state, lit: torch.Tensor | None, rows: torch.Tensor | None = None) -> torch.Tensor:
         """True when a particle outside the core has become a seed (heat is near the edge, or
         a particle was heated from outside the step): a 0-d device tensor (the step reads it
-        with its other decisions). In a run a seed leaves the core only through the frontier."""
-        return (self.seeds(state, lit) & (self.frontier | ~self.active)).any()
+        with its other decisions). ``rows``: the particles whose temperature, phase and
+        lighting a step changes (the conducting rows); only those of them outside the core
+        are read (:meth:`edge`), since no other particle can become a seed in a step.
+        Temperatures set from outside the step (by hand) are not read here: the step sees
+        that the state's T is not the array it wrote and refreshes the set
+        (:meth:`torchsph.simulation.Simulation.advance`)."""
+        if rows is None:
+            return (self.seeds(state, lit) & (self.frontier | ~self.active)).any()
+        return self.seeds(state, lit, self.edge(rows)).any()
+
+    _edge = None  # (rows, frontier, the rows outside the core)
+
+    def edge(self, rows: torch.Tensor) -> torch.Tensor:
+        """Those of ``rows`` outside the core (the frontier's, in a run), made once per row
+        set and refresh."""
+        e = self._edge
+        if e is None or e[0] is not rows or e[1] is not self.frontier:
+            out = self.frontier | ~self.active
+            self._edge = e = (rows, self.frontier, rows.index_select(0, torch.nonzero(out.index_select(0, rows)).squeeze(1)))
+        return e[2]
 
     def pad(self, n: int):
         """New particles (appended) start outside every set until the next refresh."""

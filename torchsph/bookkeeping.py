@@ -104,9 +104,10 @@ def end_flags(sim) -> dict:
     """The decisions the end of a step reads, as 0-d device tensors."""
     f = {}
     if sim.active_set is not None:  # heat reached the frontier band
-        f["stale"] = sim.active_set.stale(sim.state, rates.source_mask(sim))
+        f["stale"] = sim.active_set.stale(sim.state, rates.source_mask(sim),
+                                          sim.thermal.rows if sim.thermal is not None else None)
     if sim.fluid is None and sim.thermal is not None:
-        f["T_ok"] = torch.isfinite(sim.state.T).all()
+        f["T_ok"] = torch.isfinite(sim.state.T.index_select(0, sim.thermal.rows)).all()  # (only the rows' change)
     return f
 
 
@@ -116,12 +117,13 @@ class EndTemperatures:
     the step reads that some did not converge."""
 
     def __init__(self, s, rows, inv):
-        self.rows, self.inv, self.T_peak = rows, inv, s.T_peak
+        self.rows, self.inv = rows, inv
+        self.peak0 = s.T_peak.index_select(0, rows)  # the rows' peaks before them
         self.put(s, inv.T)
 
     def put(self, s, T):
-        s.T = s.T.index_copy(0, self.rows, T)
-        s.T_peak = self.T_peak.index_copy(0, self.rows, torch.maximum(self.T_peak.index_select(0, self.rows), T))
+        s.T = s.T.index_copy(0, self.rows, T)  # (a new array: the step's T_prev keeps T_n)
+        s.T_peak.index_copy_(0, self.rows, torch.maximum(self.peak0, T))
 
 
 def finish_step(sim, dt: float, ending: EndTemperatures | None = None) -> dict:

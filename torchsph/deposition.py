@@ -123,12 +123,50 @@ class WireFeeder:
     def probe(self, sim) -> dict[str, torch.Tensor]:
         """The contact check's first questions (is solid wire at the substrate's top, is melt
         squeezed) as 0-d device tensors, which the step reads with its other decisions; the
-        next :meth:`new_particles` (at the same positions) uses the answers."""
+        next :meth:`new_particles` (at the same positions) uses the answers. Only the wire's
+        particles and the melt are read (not every particle)."""
         s = sim.state
-        low = (s.body == WIRE) & (s.phase == Phase.SOLID) & (s.x[:, 2] < 0.5 * self.dx)
-        dense = (s.phase == Phase.FLUID) & (s.rho > (1.0 + self.squeeze) * self.rho0) if self.stall else None
-        self.probed = (s.x, low, dense)
-        return {"wire_low": low.any()} | ({"melt_dense": dense.any()} if dense is not None else {})
+        w = self.wire_rows(s)
+        low = (s.phase.index_select(0, w) == Phase.SOLID) & (s.x.index_select(0, w)[:, 2] < 0.5 * self.dx)
+        q = {"wire_low": low.any()}
+        dense = None
+        if self.stall:
+            f = self.melt_rows(sim)
+            dense = (f, s.rho.index_select(0, f) > (1.0 + self.squeeze) * self.rho0)
+            q["melt_dense"] = dense[1].any()
+        self.probed = (s.x, (w, low), dense)
+        return q
+
+    _wire = None  # (the body array, the wire's particles in it)
+
+    def wire_rows(self, s) -> torch.Tensor:
+        """The particles of the wire's body, found once per body array (the selection after a
+        feed or a phase change makes it: :meth:`select`)."""
+        if self._wire is None or self._wire[0] is not s.body:
+            self._wire = (s.body, torch.nonzero(s.body == WIRE).squeeze(1))
+        return self._wire[1]
+
+    _melt = None  # (the phase array, the fluid particles in it)
+
+    def melt_rows(self, sim) -> torch.Tensor:
+        """The fluid particles, found once per phase array (the fluid model's, where it
+        selected on this one)."""
+        s, fm = sim.state, sim.fluid_model
+        if fm is not None and getattr(fm, "fluid_rows_for", None) is s.phase:
+            return fm.fluid_rows
+        if self._melt is None or self._melt[0] is not s.phase:
+            self._melt = (s.phase, torch.nonzero(s.phase == Phase.FLUID).squeeze(1))
+        return self._melt[1]
+
+    def select(self, sim):
+        """At a pair selection (the particles, their phases or bodies may have changed)."""
+        self.wire_rows(sim.state)
+        self.melt_rows(sim)
+
+    @staticmethod
+    def _whole(n: int, part) -> torch.Tensor:
+        idx, m = part
+        return torch.zeros(n, dtype=torch.bool, device=m.device).index_copy_(0, idx, m)
 
     probed = None  # (positions, masks) of the last probe
 
@@ -190,6 +228,9 @@ class WireFeeder:
             hit, some_dense = bool(vals[0]), len(vals) > 1 and bool(vals[1])
             _, low, dense = self.probed
         self.probed = None
+        # (the probe's masks are of the wire's and the melt's particles; whole only when read)
+        low = self._whole(s.n, low) if hit else None
+        dense = self._whole(s.n, dense) if some_dense else None
         if hit:
             low = self.touches_solid_substrate(s, low)
             hit = bool(low.any())

@@ -178,6 +178,8 @@ class WeaklyCompressibleFluid:
         <= depth - 1; ghosts take their owners' accelerations afterwards."""
         fluid = state.phase == Phase.FLUID
         self.fluid_mask = fluid
+        self.fluid_rows = torch.nonzero(fluid).squeeze(1)  # every fluid particle (ghosts too): the step moves these
+        self.fluid_rows_for = state.phase  # (the phase array they were found in)
         if level is None:
             self.rows_f = torch.nonzero(fluid).squeeze(1)
             self.n_momentum = self.rows_f.numel()

@@ -109,6 +109,12 @@ class ConductionOperator:
         # all in G, so only the other particles' table rows are read for the moving pairs
         counts = torch.bincount(body.index_select(0, self.rows)[steady.index_select(0, self.rows)])
         self.main_body = int(counts.argmax()) if counts.numel() else -1
+        # G's columns in a local numbering: the particles it reads (the rows and their rigid
+        # partners), so a product reads [V, V T] of those only, not of every particle
+        used = torch.zeros(n, dtype=torch.bool, device=dev)
+        used[self.g_j] = True
+        self.cols = torch.nonzero(used).squeeze(1)
+        self.g_jl = (torch.cumsum(used, 0) - 1).index_select(0, self.g_j)
         self.n_static = int(self.g_row.numel())
         self.n_dynamic = 0
         self.G = None
@@ -202,17 +208,20 @@ class ConductionOperator:
         self.g = g = torch.where(live, g, torch.zeros_like(g))
         with warnings.catch_warnings():  # "sparse CSR support is in beta": mv on CSR is what we use of it
             warnings.simplefilter("ignore", UserWarning)
-            self.G = torch.sparse_csr_tensor(self.crow, j, g, size=(self.rows.numel(), k.shape[0]),
+            self.G = torch.sparse_csr_tensor(self.crow, self.g_jl, g, size=(self.rows.numel(), self.cols.numel()),
                                              check_invariants=False)
         self.built = True
 
-    def apply(self, x, T, k, V, zeta) -> torch.Tensor:
-        """(div k grad T) on ``rows``: the matrix product plus the moving pairs' sum."""
+    def apply(self, x, T, k, m, rho, zeta) -> torch.Tensor:
+        """(div k grad T) on ``rows``: the matrix product plus the moving pairs' sum (the
+        volumes V = m / rho of the particles read only)."""
         if self.n_static:
-            X = torch.stack([V, V * T], 1)
+            c = self.cols
+            V_c = m.index_select(0, c) / rho.index_select(0, c)
+            X = torch.stack([V_c, V_c * T.index_select(0, c)], 1)
             if torch.compiler.is_compiling():  # a traced step has no sparse tensors: G's entries summed
                 u = torch.zeros(self.rows.numel(), 2, dtype=T.dtype, device=T.device).index_add_(
-                    0, self.g_row, self.g.unsqueeze(1) * X.index_select(0, self.g_j))
+                    0, self.g_row, self.g.unsqueeze(1) * X.index_select(0, self.g_jl))
             else:
                 u = self.G @ X
             q = T.index_select(0, self.rows) * u[:, 0] - u[:, 1]
@@ -222,7 +231,8 @@ class ConductionOperator:
             i, j = self.d_i, self.d_j
             g = pair_factor(x.index_select(0, i), x.index_select(0, j), k.index_select(0, i), k.index_select(0, j),
                             zeta.index_select(0, i), zeta.index_select(0, j), self.kernel, self.h, self.domain)
-            q = q.index_add(0, self.d_row, g * V.index_select(0, j) * (T.index_select(0, i) - T.index_select(0, j)))
+            V_j = m.index_select(0, j) / rho.index_select(0, j)
+            q = q.index_add(0, self.d_row, g * V_j * (T.index_select(0, i) - T.index_select(0, j)))
         return q
 
     @property

@@ -29,17 +29,24 @@ class PhaseChange:
     C: float  # mushy-zone drag (1/s)
 
     def decide(self, sim):
-        """(the particles that melt, those that freeze, their counts as a device tensor)."""
-        s = sim.state
-        melt = (s.phase == Phase.SOLID) & (s.T > self.T_L)
-        freeze = (s.phase == Phase.FLUID) & (s.T < self.T_S)
-        return melt, freeze, torch.stack([melt.sum(), freeze.sum()])
+        """(the particles that melt, those that freeze, as masks over the conducting rows,
+        their counts as a device tensor). Only the rows' temperatures change in a step, so
+        only they are read (a decomposition's ghosts take their owners' decisions)."""
+        s, rows = sim.state, sim.thermal.rows
+        phase, T = s.phase.index_select(0, rows), s.T.index_select(0, rows)
+        melt = (phase == Phase.SOLID) & (T > self.T_L)
+        freeze = (phase == Phase.FLUID) & (T < self.T_S)
+        return (rows, melt), (rows, freeze), torch.stack([melt.sum(), freeze.sum()])
 
     def change(self, sim, melt, freeze, n_melt: int, n_freeze: int, total):
-        """Apply :meth:`decide`'s decision (``n_melt``, ``n_freeze``: this process's counts;
-        ``total``: the counts over every process, which all re-select together)."""
+        """Apply :meth:`decide`'s decision (``melt``, ``freeze``: (rows, mask over them);
+        ``n_melt``, ``n_freeze``: this process's counts; ``total``: the counts over every
+        process, which all re-select together)."""
         s = sim.state
         g_melt, g_freeze = total
+        def whole(rm):
+            return torch.zeros(s.n, dtype=torch.bool, device=s.device).index_copy_(0, rm[0], rm[1])
+        melt, freeze = whole(melt), whole(freeze)
         if n_freeze:  # join the body it rests on and take that body's velocity
             rows = torch.nonzero(freeze).squeeze(1)
             b = resting_body(sim, rows)

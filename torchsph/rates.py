@@ -31,15 +31,16 @@ def accelerations(sim, v_eval, terms: bool = False):
     return out[0] + a_s, {**out[1], **parts_s}
 
 
-def heat_power(sim, T: torch.Tensor, t: float):
+def heat_power(sim, T: torch.Tensor, t: float, rows_only: bool = False):
     """Heat per particle (W) and the totals by kind (W, booked over the owned particles):
     conduction, beams and losses (:meth:`torchsph.thermal.Conduction.power`) and every
-    heat term, on the conducting rows."""
-    P, totals = sim.thermal.power(sim.state, T, t)
+    heat term, on the conducting rows (``rows_only``: P of those rows only, in their order;
+    else of every particle, 0 off them)."""
+    P, totals = sim.thermal.power(sim.state, T, t, rows_only=rows_only)
     rows = sim.thermal.rows
     for term in sim.heat_terms:
         p = term.heat(sim, t, rows)
-        P = P.index_add(0, rows, p)
+        P = P + p if rows_only else P.index_add(0, rows, p)
         totals[term.section] = owned_sum(sim, rows, p)
     return P, totals
 

@@ -114,6 +114,7 @@ class Simulation:
         self.rebuilt = False  # the set-up build needs no migration
         self.info = self.measure()
         diagnosis.check_finite(self, state.v)
+        self.T_seen = self.state.T if self.active_set is not None else None
         if dt_fixed is not None:
             self.check_fixed_dt()
 
@@ -172,9 +173,12 @@ class Simulation:
                                       x_ref=self.nl.x_ref, new_table=new_table, reach=0.5 * self.nl.skin)
         for term in self.terms:
             term.select(self)
+        if self.feeder is not None and hasattr(self.feeder, "select"):
+            self.feeder.select(self)
         self.plan.select(self)
 
     # --- time-step control (torchsph.limits) --------------------------------
+    T_seen = None  # with an active set: the temperatures the last step left (others were set by hand)
     lim_cache = None  # (step, n, limits) of choose_dt, which advance() reuses (same state)
     pre_limits = None  # the limits before the step being taken (for a diagnosis)
 
@@ -212,6 +216,8 @@ class Simulation:
                            else self.limits())  # of the last good state, for a diagnosis
         if dt is None:
             dt, limit = self.choose_dt()
+        if self.T_seen is not None and self.state.T is not self.T_seen and self.comm.size == 1:
+            self.stale = True  # temperatures set from outside the step: the active set is refreshed now
         self.comm.begin_step(self)  # migration and new ghosts after a rebuild (decomposed runs)
         self.rebuilt = False
         self.T_prev = self.state.T
@@ -274,6 +280,8 @@ class Simulation:
         flags = bookkeeping.finish_step(self, dt, ending)
         diagnosis.check_finite(self, v_tilde, dt, limit, flags.get("T_ok"))
         self.plan.add(self)
+        if self.active_set is not None:
+            self.T_seen = self.state.T
         return StepInfo(dt, limit, self.info["vmax"], self.info["amax"])
 
     def set_body_velocity(self, body: int, v: torch.Tensor):

@@ -20,6 +20,7 @@ import torch
 
 from . import rates
 from .bookkeeping import EndTemperatures
+from .fluid import embed
 from .state import Phase
 from .thermal import Inversion
 
@@ -38,13 +39,22 @@ def first_half(sim, dt: torch.Tensor) -> Half:
     evaluation), density, drift (with shifting). Sets the state's T, rho and x. ``dt``: a
     0-d float64 tensor, so a traced part is not specialised to its value."""
     s = sim.state
-    fm = sim.fluid_mask.unsqueeze(-1)
-    a = sim.dvdt  # zero for walls: they keep their prescribed velocity
-    # (one fused pass per whole-array update: at full size these passes over every particle,
-    # most of them rigid, cost more than the physics of the few that move)
+    # Only the fluid accelerates (dvdt is zero elsewhere: walls and rigid bodies keep their
+    # velocity), so the kicks are taken on the fluid's rows and written into copies of v;
+    # the drift moves every particle (rigid bodies with their velocity, the fluid with
+    # u_{n+1/2}). At full size a pass over every particle costs more than the physics of
+    # the few that move: each whole-array update is one fused pass.
     half = 0.5 * dt
-    v_half = torch.addcmul(s.v, a, half)  # 1a (v + dt/2 a, fused as torch.add(alpha=) is)
-    v_tilde = torch.addcmul(s.v, a, dt)  # 1b
+    fr = sim.fluid.fluid_rows if sim.fluid is not None else None
+    if fr is None:  # nothing accelerates
+        v_half = v_tilde = s.v
+        x_new = torch.addcmul(s.x, s.v, dt)
+    else:
+        v_f, a_f = s.v.index_select(0, fr), sim.dvdt.index_select(0, fr)
+        vh_f = torch.addcmul(v_f, a_f, half)  # 1a (v + dt/2 a)
+        v_half = s.v.index_copy(0, fr, vh_f)
+        v_tilde = s.v.index_copy(0, fr, torch.addcmul(v_f, a_f, dt))  # 1b
+        x_new = torch.addcmul(s.x, s.v, dt).index_copy_(0, fr, torch.addcmul(s.x.index_select(0, fr), vh_f, dt))
     rows0 = H_half_r = inv = None
     if sim.thermal is not None:  # the energy equation in specific enthalpy h(T)
         th = sim.thermal
@@ -60,7 +70,6 @@ def first_half(sim, dt: torch.Tensor) -> Half:
         sim.drhodt, shift = sim.fluid.continuity(  # at x_n, with u_{n+1/2}
             v_half, s.m, sim.dx if sim.fluid.prm.shifting > 0 else 0.0, rho=s.rho)
         s.rho = s.rho + dt * sim.drhodt
-    x_new = torch.addcmul(s.x, torch.where(fm, v_half, s.v), dt)  # 1e (rigid bodies move with their velocity)
     if shift is not None:
         if sim.surface is not None:
             shift = sim.surface.project_shift(shift, sim.fluid.rows_f)
@@ -79,7 +88,10 @@ def close_momentum(sim, dt: torch.Tensor, damping: torch.Tensor | None, v_half, 
         if damping is not None:
             fm = sim.fluid_mask.unsqueeze(-1)
             sim.dvdt = sim.dvdt - damping * torch.where(fm, v_tilde, torch.zeros_like(v_tilde))
-    s.v = v_half.addcmul_(sim.dvdt, 0.5 * dt)  # 3c
+        fr = sim.fluid.fluid_rows  # (v_half: this step's own copy, so written in place)
+        s.v = v_half.index_copy_(0, fr, torch.addcmul(v_half.index_select(0, fr), sim.dvdt.index_select(0, fr), 0.5 * dt))  # 3c
+    else:
+        s.v = v_half  # nothing accelerates
     if sim.new_body_velocity:  # a body's velocity was changed during the step (a feed starts)
         sim.new_body_velocity = False
         solid = (s.phase == Phase.SOLID).unsqueeze(-1)
@@ -93,8 +105,8 @@ def close_energy(sim, dt: torch.Tensor, t_end: torch.Tensor, rows, H_half) -> En
     walls take their densities there) and the selection's cached values
     (:meth:`~torchsph.thermal.Conduction.prepare`)."""
     s, th = sim.state, sim.thermal
-    P, heat = rates.heat_power(sim, s.T, t_end)  # 2 (W per particle; 0 on walls)
-    sim.dTdt = P / s.m
+    P_r, heat = rates.heat_power(sim, s.T, t_end, rows_only=True)  # 2 (W per particle of the rows; 0 elsewhere)
+    sim.dTdt = embed(th.rows, P_r / s.m.index_select(0, th.rows), s.n)  # (the rows of now: a rebuild may have changed them)
     for k, v in heat.items():  # accumulated on the device: no sync per step
         sim.energy[k] = sim.energy.get(k, 0.0) + 0.5 * dt * (sim.heat_totals[k] + v)
     sim.heat_totals = heat

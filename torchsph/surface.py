@@ -136,6 +136,7 @@ class SurfaceForces:
         self.nb_f, self.mask_f = table.gather(self.rows_f, within=True)
         self.fluid = fluid
         self.colour.want("surface", self.rows_f, table)
+        self._buf = None  # the evaluation's whole-length arrays, made at its first evaluation
         if self.wetting is not None:
             self.wetting.select(state, self.nb_f, self.mask_f, table)
 
@@ -149,7 +150,6 @@ class SurfaceForces:
         others are zero). Sets ``normal``, ``kappa`` and ``n_surface``."""
         prm, n, d = self.prm, state.n, state.dim
         x, m, rho = state.x, state.m, state.rho
-        zero = torch.zeros_like(x)
         g = self.colour.of(state, "surface")
         gn = g.norm(dim=-1)
         # every fluid row is evaluated and the ones off the surface masked out: fixed shapes,
@@ -158,8 +158,16 @@ class SurfaceForces:
         rows, nb, onv = self.rows_f, self.nb_f, on.unsqueeze(-1)
         onf = onv.to(rho.dtype)  # (a product with it: every factor it masks is finite)
         self.n_surface = on.sum()  # (a tensor: the plan statistics sum it without a read)
-        self.normal = zero  # (zero off the surface rows; written in place below)
-        self.kappa = torch.zeros_like(rho)
+        # The fields the pair sums read by particle (normals, flags, curvature) are
+        # whole-length arrays that only the rows ever write: made zero once per selection
+        # (the rows are fixed until the next) and written in place at each evaluation, not
+        # made and zeroed at every step (at full size, passes over every particle).
+        buf = self._buf
+        if buf is None or buf["flag"].shape[0] != n:
+            buf = self._buf = {"normal": torch.zeros_like(x), "kappa": torch.zeros_like(rho),
+                               "flag": torch.zeros_like(rho), "flag_s": torch.zeros_like(rho),
+                               "nfield": torch.zeros_like(x), "surf": torch.zeros_like(self.fluid)}
+        self.normal, self.kappa = buf["normal"], buf["kappa"]  # (zero off the surface rows)
         parts = {}
         gns = torch.where(on, gn, torch.ones_like(gn))
         n_out = -g / gns.unsqueeze(-1) * onf
@@ -167,7 +175,7 @@ class SurfaceForces:
         if self.wetting is not None:  # the contact band: the melt's surface next to the solid
             band = self.wetting.contact_band(state, rows, g, on)
         self.normal.index_copy_(0, rows, n_out)
-        flag = torch.zeros_like(rho).index_copy_(0, rows, on.to(rho.dtype))  # surface fluid particles
+        flag = buf["flag"].index_copy_(0, rows, on.to(rho.dtype))  # surface fluid particles
         # force per unit mass = (force per area) x A_i / m_i = (force per area) |grad c| / (rho D)
         per_area = (gns / (rho.index_select(0, rows) * self.delta_norm)).unsqueeze(-1) * onf
         a = torch.zeros_like(n_out)
@@ -177,11 +185,11 @@ class SurfaceForces:
             flag_s = flag
             if band is not None:  # the band's normals blend in the solid's: not smoothed into
                 # the surface beside it, whose normals read the contact angle
-                flag_s = flag.index_copy(0, rows, (on & ~band).to(rho.dtype))
+                flag_s = buf["flag_s"].index_copy_(0, rows, (on & ~band).to(rho.dtype))
             nsm = self._fns["smooth"](x, self.normal, flag_s, m, rho, rows, nb, self.mask_f.to(rho.dtype),
                                       self.kernel, self.h, self.domain)
             nsm = nsm / nsm.norm(dim=-1, keepdim=True).clamp_min(1e-30) * onf
-            nfield = torch.zeros_like(x).index_copy_(0, rows, nsm)  # (read at surface rows only)
+            nfield = buf["nfield"].index_copy_(0, rows, nsm)  # (read at surface rows only)
             gradn = solve_gradient(*self._fns["moments"](x, nfield, flag, m, rho, rows, nb, self.kernel,
                                                          self.h, self.domain))
             kappa = torch.diagonal(gradn, dim1=-2, dim2=-1).sum(-1)
@@ -191,7 +199,7 @@ class SurfaceForces:
             alpha = self.tension(state.T.index_select(0, rows))
             n_f = n_out
             if band is not None:
-                surf = torch.zeros_like(self.fluid).index_copy_(0, rows, on)
+                surf = buf["surf"].index_copy_(0, rows, on)
                 F = self.wetting.force(state, rows, nfield, self.kappa, surf, alpha)
                 parts["contact_line"] = F / m.index_select(0, rows).unsqueeze(-1)
                 a = a + parts["contact_line"]
@@ -204,7 +212,9 @@ class SurfaceForces:
             parts["surface_tension"] = -(alpha * kappa).unsqueeze(-1) * n_f * per_area
             a = a + parts["surface_tension"]
         if self.marangoni_on:
-            material = (state.phase != Phase.WALL).to(rho.dtype)
+            if getattr(self, "_material", (None,))[0] is not state.phase:  # once per phase array
+                self._material = (state.phase, (state.phase != Phase.WALL).to(rho.dtype))
+            material = self._material[1]
             gT = solve_gradient(*self._fns["moments"](x, state.T, material, m, rho, rows, nb,
                                                       self.kernel, self.h, self.domain))
             gT_t = gT - dot(gT, n_out).unsqueeze(-1) * n_out

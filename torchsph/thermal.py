@@ -455,7 +455,7 @@ class Conduction:
         """div(k grad T) (W/m^3) on ``rows`` only."""
         T = self.wall_temperature(state, T)
         self.prepare(state)
-        return self.op.apply(state.x, T, self.k, state.m / state.rho, self.zeta_cache)
+        return self.op.apply(state.x, T, self.k, state.m, state.rho, self.zeta_cache)
 
     def zeta(self, state: ParticleState) -> torch.Tensor:
         """Per-particle Laplacian normalisation, used where it lies in [0.95, 1.05] (else 1): it corrects the
@@ -471,7 +471,8 @@ class Conduction:
             return torch.where(in_rows, prev, self.wall_mask.to(z.dtype)).index_copy(0, rows, z)
         return embed(rows, z, state.n) + self.wall_mask.to(z.dtype)
 
-    def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False):
+    def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False,
+              rows_only: bool = False):
         """Heat per particle (W): conduction V_i div(k grad T), beam power, minus surface
         losses; and the totals by kind (W) (with ``per_particle``, the per-particle arrays by
         kind instead, for a diagnosis). The step integrates the specific enthalpy,
@@ -479,9 +480,9 @@ class Conduction:
         rho c_eff dT/dt = div(k grad T) + sources, but the latent heat is absorbed exactly
         however narrow the mushy interval is compared with one step's temperature change.
         Conduction is evaluated on every row at every step (one sparse product and the
-        moving pairs: :mod:`torchsph.heat_operator`)."""
+        moving pairs: :mod:`torchsph.heat_operator`). With ``rows_only``, P on ``rows`` only."""
         rows, n = self.rows, state.n  # every term on the rows only (the others get none)
-        parts = {"conduction": self.heat_rate_rows(state, T) * (state.m / state.rho).index_select(0, rows)}
+        parts = {"conduction": self.heat_rate_rows(state, T) * (state.m.index_select(0, rows) / state.rho.index_select(0, rows))}
         if self.beams:
             parts["beam"] = self.beam_power_rows(state, t, rows)
             lit = parts["beam"] > 0
@@ -497,7 +498,9 @@ class Conduction:
             area = self.area_cache.index_select(0, rows)
             for name, f in fl.items():
                 parts[name] = -f * area
-        P = embed(rows, sum(parts.values()), n)
+        P = sum(parts.values())
+        if not rows_only:
+            P = embed(rows, P, n)
         if per_particle:
             return P, {k: embed(rows, v, n) for k, v in parts.items()}
         own = getattr(self, "owned", None)  # a decomposed run books its own particles only

@@ -73,7 +73,6 @@ class ContactAngle:
     def __init__(self, angle_deg: float, kernel: Kernel, h: float, domain: Domain, threshold: float):
         self.cos = math.cos(math.radians(angle_deg))
         self.kernel, self.h, self.domain, self.threshold = kernel, h, domain, threshold
-        self.reaction = None  # (N, d) force booked on the solid at the last evaluation
         self.band = None  # (rows,) bool: the contact band among the melt rows at the last evaluation
 
     def select(self, state, nb: torch.Tensor, mask: torch.Tensor, table=None):
@@ -82,6 +81,7 @@ class ContactAngle:
         support before the next selection (the table reaches a skin further), so the band is
         sought among them alone: the work follows the melt beside the solid, not all melt."""
         solid = gather_nb(state.phase != Phase.FLUID, nb) & mask
+        self._bufs = None
         self.sub = torch.nonzero(solid.any(1)).squeeze(1)  # (a selection may read the host)
         self.nb_c, self.mask_c = nb.index_select(0, self.sub), mask.index_select(0, self.sub).to(state.x.dtype)
         self.solid_nb = solid.index_select(0, self.sub).to(state.x.dtype)
@@ -149,7 +149,7 @@ class ContactAngle:
         rows_c = rows.index_select(0, sub)
         dxp, r = self.geom  # (this state's: contact_band() came first)
         Wk = self.kernel.w(r, self.h) * mask
-        band_full = torch.zeros_like(surface).index_copy_(0, rows, self.band)
+        band_full = self._whole("band", surface, rows, self.band)
         beside = (gather_nb(surface & ~band_full, nb)).to(Wk.dtype) * Wk
         bsum = beside.sum(1)
         seen = (bsum > 0) & band
@@ -197,26 +197,58 @@ class ContactAngle:
         self.book(state, F)
         # spread over the melt within the band particle's support (kernel weights, itself
         # included): a force on the few band particles alone tears them off the melt
-        V = state.m / state.rho
-        melt_nb = (1.0 - self.solid_nb) * Wk * gather_nb(V, nb)
-        w_self = V.index_select(0, rows_c) * self.kernel.w(torch.zeros((), dtype=Wk.dtype), self.h)
+        melt_nb = (1.0 - self.solid_nb) * Wk * (gather_nb(state.m, nb) / gather_nb(state.rho, nb))
+        w_self = (state.m.index_select(0, rows_c) / state.rho.index_select(0, rows_c)) * self.kernel.w(
+            torch.zeros((), dtype=Wk.dtype), self.h)
         norm = (melt_nb.sum(1) + w_self).unsqueeze(-1)
-        out = torch.zeros_like(state.x)
+        out = self._accumulator("spread", state.x, nb, rows_c)
         out.index_add_(0, nb.reshape(-1), (melt_nb.unsqueeze(-1) * (F / norm).unsqueeze(1)).reshape(-1, state.dim))
         out.index_add_(0, rows_c, w_self.unsqueeze(-1) * F / norm)
         return out.index_select(0, rows)
 
     def book(self, state, force: torch.Tensor) -> torch.Tensor:
-        """The reaction (N, d) on the solid of ``force`` (on the sub-rows of :meth:`select`, in
-        N; zero off the band): each band particle's force, reversed, shared over its solid
-        neighbours by V_j W_ij."""
+        """The reaction on the solid of ``force`` (on the sub-rows of :meth:`select`, in N;
+        zero off the band): each band particle's force, reversed, shared over its solid
+        neighbours by V_j W_ij; returns it per table entry (R, k, d) and keeps it for
+        :attr:`reaction`."""
         wsum = self.weights.sum(1, keepdim=True)
         share = self.weights / wsum.clamp_min(1e-300) * self.band_c.to(force.dtype).unsqueeze(-1)
         pair = -share.unsqueeze(-1) * force.unsqueeze(1)  # (R, k, d)
-        out = torch.zeros_like(state.x)
-        out.index_add_(0, self.nb_c.reshape(-1), pair.reshape(-1, state.dim))
-        self.reaction = out
-        return out
+        self._reaction = (state.x, self.nb_c.reshape(-1), pair.reshape(-1, state.dim))
+        return pair
+
+    _reaction = None  # (positions, entries, forces): the reaction, summed when read
+
+    @property
+    def reaction(self) -> torch.Tensor | None:
+        """The reaction (N, d) on the solid at the last evaluation (summed per particle when
+        read: the step itself does not use it; a rigid solid does not move by it)."""
+        if self._reaction is None:
+            return None
+        x, idx, f = self._reaction
+        return torch.zeros_like(x).index_add_(0, idx, f)
+
+    # Whole-length work arrays, made once per selection (:meth:`select`) and per length:
+    # only the selection's rows and their table entries are ever written, so they are reset
+    # on those alone at each evaluation (not made and zeroed whole at every step).
+    _bufs = None
+
+    def _buffer(self, name: str, like: torch.Tensor) -> torch.Tensor:
+        if self._bufs is None:
+            self._bufs = {}
+        b = self._bufs.get(name)
+        if b is None or b.shape != like.shape or b.dtype != like.dtype:
+            b = self._bufs[name] = torch.zeros_like(like)
+        return b
+
+    def _whole(self, name: str, like: torch.Tensor, rows: torch.Tensor, vals: torch.Tensor) -> torch.Tensor:
+        """``vals`` at ``rows``, zero elsewhere (``rows``: the selection's, fixed until the next)."""
+        return self._buffer(name, like).index_copy_(0, rows, vals)
+
+    def _accumulator(self, name: str, like: torch.Tensor, nb: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """A zero array to sum into at ``nb`` and ``rows`` (zeroed there only)."""
+        b = self._buffer(name, like)
+        return b.index_fill_(0, nb.reshape(-1), 0.0).index_fill_(0, rows, 0.0)
 
 
 __all__ = ["ContactAngle"]
