@@ -7,6 +7,7 @@ import torch
 from conftest import CASES
 from torchsph.config import load_case
 from torchsph.fluid import embed
+from torchsph.heat_operator import material_factor
 from torchsph.neighbors import NeighbourTable, build_table
 from torchsph.runner import make_simulation, run_steps
 from torchsph.state import Phase
@@ -25,25 +26,37 @@ def pair_sum(th, state, T):
 def checking(sim):
     """Wrap the thermal model's heat rate: every evaluation is compared with the pair sum.
     Returns the record {worst: max relative difference, evals, static_share (min), builds,
-    refrozen: evaluations with a particle solid again but not yet steady}."""
+    carried: builds that carried entries from the last, refrozen: evaluations with a particle
+    solid again but not yet steady}. A build's values are also compared, bit for bit, with
+    the values made afresh (a build that carries the unchanged entries must equal it)."""
     th = sim.thermal
-    rec = {"worst": 0.0, "evals": 0, "static_share": 1.0, "builds": 0, "refrozen": 0}
-    orig = th.heat_rate_rows
+    rec = {"worst": 0.0, "evals": 0, "static_share": 1.0, "builds": 0, "refrozen": 0, "carried": 0}
+    orig, orig_prepare = th.heat_rate_rows, th.prepare
+
+    def prepare(state):  # where the operator's values are made (once per selection)
+        op = th.op
+        built, carry = op.built, op._built_from is not None
+        orig_prepare(state)
+        if not built:
+            i, j = op.g_i, op.g_j
+            fresh = material_factor(th.k[i], th.k[j], th.zeta_cache[i], th.zeta_cache[j]) * op.g_f
+            fresh = torch.where(op.steady[i] & op.steady[j], fresh, torch.zeros_like(fresh))
+            assert torch.equal(op.g, fresh)
+            rec["builds"] += 1
+            rec["carried"] += carry
 
     def checked(state, T):
         op = th.op
-        built = op.built
         q = orig(state, T)
         ref = pair_sum(th, state, T)
         if ref.numel():
             rec["worst"] = max(rec["worst"], float((q - ref).abs().max() / ref.abs().max()))
         rec["evals"] += 1
-        rec["builds"] += not built
         rec["static_share"] = min(rec["static_share"], op.n_static / max(op.pairs, 1))
         rec["refrozen"] += bool(((state.phase == Phase.SOLID) & ~th.steady).any())
         return q
 
-    th.heat_rate_rows = checked
+    th.heat_rate_rows, th.prepare = checked, prepare
     return rec
 
 
@@ -97,6 +110,7 @@ def test_operator_through_a_deposition_run():
     assert rec["worst"] < 1e-12, rec
     assert rec["static_share"] > 0.8, rec
     assert rec["builds"] < 0.5 * rec["evals"], rec
+    assert rec["carried"] > 0, rec  # (and each equal to the build made afresh)
 
 
 def test_restart_between_a_freeze_and_the_next_build_is_bit_for_bit(tmp_path):

@@ -198,14 +198,33 @@ class ConductionOperator:
         self.steady = steady
         self.built = False
 
+    _built_from = None  # (k, zeta, steady) of this operator's last build
+
     def build(self, k, zeta):
         """G's values: g_ij for the rigid pairs whose particles are both still steady, 0 for
-        the others (their pairs are among the moving ones now)."""
+        the others (their pairs are among the moving ones now). A build after the first
+        makes only the entries with a particle whose k, zeta or steady flag changed (the
+        others' values are functions of unchanged inputs: the same bits)."""
         i, j = self.g_i, self.g_j
-        live = self.steady.index_select(0, i) & self.steady.index_select(0, j)
-        g = material_factor(k.index_select(0, i), k.index_select(0, j), zeta.index_select(0, i),
-                            zeta.index_select(0, j)) * self.g_f
-        self.g = g = torch.where(live, g, torch.zeros_like(g))
+        prev = self._built_from
+        if prev is not None and prev[1].shape == zeta.shape and prev[0].shape == k.shape:
+            k0, z0, s0 = prev
+            ch = (zeta != z0) | (self.steady != s0)
+            if k is not k0:
+                ch = ch | (k != k0)
+            redo = torch.nonzero(ch.index_select(0, i) | ch.index_select(0, j)).squeeze(1)
+            ri, rj = i.index_select(0, redo), j.index_select(0, redo)
+            live = self.steady.index_select(0, ri) & self.steady.index_select(0, rj)
+            gr = material_factor(k.index_select(0, ri), k.index_select(0, rj), zeta.index_select(0, ri),
+                                 zeta.index_select(0, rj)) * self.g_f.index_select(0, redo)
+            g = self.g.clone().index_copy_(0, redo, torch.where(live, gr, torch.zeros_like(gr)))
+        else:
+            live = self.steady.index_select(0, i) & self.steady.index_select(0, j)
+            g = material_factor(k.index_select(0, i), k.index_select(0, j), zeta.index_select(0, i),
+                                zeta.index_select(0, j)) * self.g_f
+            g = torch.where(live, g, torch.zeros_like(g))
+        self.g = g
+        self._built_from = (k, zeta, self.steady)
         with warnings.catch_warnings():  # "sparse CSR support is in beta": mv on CSR is what we use of it
             warnings.simplefilter("ignore", UserWarning)
             self.G = torch.sparse_csr_tensor(self.crow, self.g_jl, g, size=(self.rows.numel(), self.cols.numel()),
