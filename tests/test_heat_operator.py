@@ -35,7 +35,7 @@ def checking(sim):
 
     def prepare(state):  # where the operator's values are made (once per selection)
         op = th.op
-        built, carry = op.built, op._built_from is not None
+        built, carry = op.built, op.built_from is not None
         orig_prepare(state)
         if not built:
             i, j = op.g_i, op.g_j

@@ -275,7 +275,6 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     sim.nl.static = to(nl["static"]) if nl.get("static") is not None else None
     sim.nl.x_full = to(nl["x_full"]) if nl.get("x_full") is not None else None
     sim.stale = d.get("stale", False)
-    sim.T_seen = sim.state.T if sim.active_set is not None else None  # (set by the restore, not by hand)
     if sim.active_set is not None and "active" in d:
         a = d["active"]
         sim.active_set.active, sim.active_set.work = to(a["active"]), to(a["work"])

@@ -255,7 +255,9 @@ class WeaklyCompressibleFluid:
         # the pressure where it is read: the fluid rows' from the EOS, the wall rows' extrapolated
         # (the others keep theirs: the background pressure, set at the selection, or a ghost's
         # from its owner)
-        p = state.p.index_copy(0, self.rows_f, self.eos(state.rho.index_select(0, self.rows_f)))
+        # (in place: no one keeps the pressures of an earlier evaluation; a diagnosis
+        # evaluates on a clone of the state)
+        p = state.p.index_copy_(0, self.rows_f, self.eos(state.rho.index_select(0, self.rows_f)))
         u_visc = v_eval
         if self.has_walls:
             p, u_visc = self._wall_extrapolation(state, p, v_eval, g)
@@ -329,4 +331,4 @@ class WeaklyCompressibleFluid:
         state.rho = state.rho.index_copy(0, rows, self.inverse_eos(pw))
         v_w = v_eval.index_select(0, rows)
         u_wall = torch.where(has.unsqueeze(-1), 2.0 * v_w - sv / safe.unsqueeze(-1), v_w)
-        return p.index_copy(0, rows, pw), v_eval.index_copy(0, rows, u_wall)
+        return p.index_copy_(0, rows, pw), v_eval.index_copy(0, rows, u_wall)

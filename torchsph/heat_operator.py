@@ -198,7 +198,7 @@ class ConductionOperator:
         self.steady = steady
         self.built = False
 
-    _built_from = None  # (k, zeta, steady) of this operator's last build
+    built_from = None  # (k, zeta, steady) of this operator's last build
 
     def build(self, k, zeta):
         """G's values: g_ij for the rigid pairs whose particles are both still steady, 0 for
@@ -206,7 +206,7 @@ class ConductionOperator:
         makes only the entries with a particle whose k, zeta or steady flag changed (the
         others' values are functions of unchanged inputs: the same bits)."""
         i, j = self.g_i, self.g_j
-        prev = self._built_from
+        prev = self.built_from
         if prev is not None and prev[1].shape == zeta.shape and prev[0].shape == k.shape:
             k0, z0, s0 = prev
             ch = (zeta != z0) | (self.steady != s0)
@@ -224,7 +224,7 @@ class ConductionOperator:
                                 zeta.index_select(0, j)) * self.g_f
             g = torch.where(live, g, torch.zeros_like(g))
         self.g = g
-        self._built_from = (k, zeta, self.steady)
+        self.built_from = (k, zeta, self.steady)
         with warnings.catch_warnings():  # "sparse CSR support is in beta": mv on CSR is what we use of it
             warnings.simplefilter("ignore", UserWarning)
             self.G = torch.sparse_csr_tensor(self.crow, self.g_jl, g, size=(self.rows.numel(), self.cols.numel()),

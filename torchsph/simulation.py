@@ -298,8 +298,9 @@ class Simulation:
         particles.set_particle_arrays(self, d)
 
     def rearm(self, arrays: dict[str, torch.Tensor], table=None):
-        """Put a swapped particle set back (:func:`torchsph.particles.rearm`)."""
+        """Put a swapped particle set back (:func:`torchsph.particles.rearm`; a restore too)."""
         particles.rearm(self, arrays, table)
+        self.T_seen = self.state.T if self.active_set is not None else None  # (not set by hand)
 
     def energy_balance(self) -> dict:
         """Energy bookkeeping (J) since the start (:func:`torchsph.bookkeeping.energy_balance`)."""

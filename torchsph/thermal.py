@@ -471,16 +471,14 @@ class Conduction:
             return torch.where(in_rows, prev, self.wall_mask.to(z.dtype)).index_copy(0, rows, z)
         return embed(rows, z, state.n) + self.wall_mask.to(z.dtype)
 
-    def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False,
-              rows_only: bool = False):
-        """Heat per particle (W): conduction V_i div(k grad T), beam power, minus surface
-        losses; and the totals by kind (W) (with ``per_particle``, the per-particle arrays by
-        kind instead, for a diagnosis). The step integrates the specific enthalpy,
-        dh/dt = P_i / m_i, and recovers T from h(T) = int c_eff dT (2.11): the same model as
-        rho c_eff dT/dt = div(k grad T) + sources, but the latent heat is absorbed exactly
-        however narrow the mushy interval is compared with one step's temperature change.
-        Conduction is evaluated on every row at every step (one sparse product and the
-        moving pairs: :mod:`torchsph.heat_operator`). With ``rows_only``, P on ``rows`` only."""
+    def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False, rows_only: bool = False):
+        """Heat per particle (W; ``rows_only``: of ``rows`` only): conduction V_i div(k grad T),
+        beam power, minus surface losses; and the totals by kind (W) (``per_particle``: the
+        per-particle arrays by kind instead, for a diagnosis). The step integrates the
+        specific enthalpy, dh/dt = P_i / m_i, and recovers T from h(T) = int c_eff dT (2.11):
+        the latent heat is absorbed exactly however narrow the mushy interval is compared
+        with one step's temperature change. Conduction: one sparse product and the moving
+        pairs on every row at every step (:mod:`torchsph.heat_operator`)."""
         rows, n = self.rows, state.n  # every term on the rows only (the others get none)
         parts = {"conduction": self.heat_rate_rows(state, T) * (state.m.index_select(0, rows) / state.rho.index_select(0, rows))}
         if self.beams:
@@ -498,9 +496,7 @@ class Conduction:
             area = self.area_cache.index_select(0, rows)
             for name, f in fl.items():
                 parts[name] = -f * area
-        P = sum(parts.values())
-        if not rows_only:
-            P = embed(rows, P, n)
+        P = sum(parts.values()) if rows_only else embed(rows, sum(parts.values()), n)
         if per_particle:
             return P, {k: embed(rows, v, n) for k, v in parts.items()}
         own = getattr(self, "owned", None)  # a decomposed run books its own particles only
