@@ -14,7 +14,9 @@ up the legs' wall time. --jobs runs that many resolutions at once (one thread ea
 
 Then one table: dx, particles, steps, wall s, particle-steps/s; the settled bead's added
 cross-section by mass (the bins behind the wire whose area changed by at most 5 % over the
-last 50 ms; where none has, the mean of the window's bins, as the settled count shows) and its error against the nominal pi d^2 V_wire / (4 V_sub); from the last
+last 50 ms; where none has, the mean of the window's bins, as the settled count shows) and its error against the nominal pi d^2 V_wire / (4 V_sub); the wire fed over the
+window against the nominal feed (the feed waits on contact) and the bead's error against the
+area of the wire actually fed (so that a wait is not counted as a resolution error); from the last
 snapshot the bead's mean width, height, penetration and toe angle over the solidified range
 behind the wire (torchsph.post.bead_profile); the melt pool's length, width and depth at the
 end; the peak temperature; the share of the fed wire that lies on the substrate (the
@@ -47,6 +49,7 @@ COLUMNS = [  # key, header, format, extrapolated
     ("wall_s", "wall s", "{:.0f}", False), ("psteps", "particle-steps/s", "{:.3g}", False),
     ("area_mm2", "bead area mm2", "{:.3f}", True), ("settled_bins", "bins settled", "{}", False),
     ("area_error", "error vs nominal", "{:+.1%}", False),
+    ("fed_share", "fed / nominal feed", "{:.1%}", False), ("area_error_fed", "error vs fed", "{:+.1%}", False),
     ("width_mm", "width mm", "{:.3f}", True), ("height_mm", "height mm", "{:.3f}", True),
     ("penetration_mm", "penetration mm", "{:.3f}", True), ("toe_deg", "toe angle deg", "{:.1f}", True),
     ("pool_length_mm", "pool L mm", "{:.2f}", True), ("pool_width_mm", "pool W mm", "{:.2f}", True),
@@ -144,6 +147,15 @@ def analyse(d: Path, dx_mm: float) -> dict:
                        (sum(window) / len(window) if window else float("nan"))) * 1e6
     row["psteps"] = row["particles"] * row["steps"] / row["wall_s"] if row["wall_s"] > 0 else float("nan")
     row["area_error"] = row["area_mm2"] / row["nominal_mm2"] - 1.0
+    # the wire actually fed against the nominal feed over the window (the feed waits on
+    # contact), and the bead against the area of the wire actually fed: a wait is then not
+    # counted as a resolution error (a window mean: the bins behind the wire were fed earlier)
+    sc, rho0 = cfg["scene"], cfg["fluid"]["rho0_kg_m3"]
+    feed_s = max(e["t_s"] - sc.get("wire_feed_start_s", 0.0), 0.0)
+    nominal_fed = rho0 * math.pi * sc["wire_diameter_m"] ** 2 / 4.0 * sc["wire_feed_m_s"] * feed_s
+    row["fed_share"] = fed / nominal_fed if nominal_fed > 0 else float("nan")
+    row["area_error_fed"] = (row["area_mm2"] / (row["nominal_mm2"] * row["fed_share"]) - 1.0
+                             if row["fed_share"] > 0 else float("nan"))
     return row
 
 
