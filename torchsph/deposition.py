@@ -13,6 +13,7 @@ import math
 
 import torch
 
+from .fluid import embed
 from .kernels import make_kernel
 from .lattice import Scene, lattice, solid_block
 from .limits import SimulationError
@@ -163,11 +164,6 @@ class WireFeeder:
         self.wire_rows(sim.state)
         self.melt_rows(sim)
 
-    @staticmethod
-    def _whole(n: int, part) -> torch.Tensor:
-        idx, m = part
-        return torch.zeros(n, dtype=torch.bool, device=m.device).index_copy_(0, idx, m)
-
     probed = None  # (positions, masks) of the last probe
 
     def new_particles(self, sim, t: float, answers: dict | None = None) -> ParticleState | None:
@@ -229,8 +225,8 @@ class WireFeeder:
             _, low, dense = self.probed
         self.probed = None
         # (the probe's masks are of the wire's and the melt's particles; whole only when read)
-        low = self._whole(s.n, low) if hit else None
-        dense = self._whole(s.n, dense) if some_dense else None
+        low = embed(*low, s.n) if hit else None
+        dense = embed(*dense, s.n) if some_dense else None
         if hit:
             low = self.touches_solid_substrate(s, low)
             hit = bool(low.any())

@@ -181,7 +181,7 @@ class WeaklyCompressibleFluid:
         self.fluid_rows = torch.nonzero(fluid).squeeze(1)  # every fluid particle (ghosts too): the step moves these
         self.fluid_rows_for = state.phase  # (the phase array they were found in)
         if level is None:
-            self.rows_f = torch.nonzero(fluid).squeeze(1)
+            self.rows_f = self.fluid_rows
             self.n_momentum = self.rows_f.numel()
         else:  # momentum rows first, then the rows that need only the continuity sum
             own = torch.nonzero(fluid & (level == 0)).squeeze(1)

@@ -29,6 +29,36 @@ def colour_gradient_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain:
     return (w.unsqueeze(-1) * dx).sum(1)
 
 
+class SelectionArrays:
+    """Whole-length work arrays of one pair selection, by name: made zero at first use and
+    then written in place on the selection's rows only (fixed until the next selection), so
+    they stay zero elsewhere without being made and zeroed whole at every evaluation.
+    :meth:`reset` at each selection."""
+
+    def __init__(self):
+        self.arrays: dict[str, torch.Tensor] = {}
+
+    def reset(self):
+        self.arrays = {}
+
+    def zeros(self, name: str, like: torch.Tensor) -> torch.Tensor:
+        b = self.arrays.get(name)
+        if b is None or b.shape != like.shape or b.dtype != like.dtype or b.device != like.device:
+            b = self.arrays[name] = torch.zeros_like(like)
+        return b
+
+    def whole(self, name: str, like: torch.Tensor, rows: torch.Tensor, vals: torch.Tensor) -> torch.Tensor:
+        """``vals`` at ``rows`` (the selection's), zero elsewhere."""
+        return self.zeros(name, like).index_copy_(0, rows, vals)
+
+    def accumulator(self, name: str, like: torch.Tensor, *places: torch.Tensor) -> torch.Tensor:
+        """A zero array to sum into at ``places`` (the selection's entries; zeroed there only)."""
+        b = self.zeros(name, like)
+        for p in places:
+            b.index_fill_(0, p.reshape(-1), 0)
+        return b
+
+
 class ColourGradient:
     """The colour gradient of the particles the terms ask for, evaluated once per state.
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .fluid import neighbour_average
+from .fluid import embed, neighbour_average
 from .particles import fluid_set
 from .state import Phase
 
@@ -44,9 +44,7 @@ class PhaseChange:
         process, which all re-select together)."""
         s = sim.state
         g_melt, g_freeze = total
-        def whole(rm):
-            return torch.zeros(s.n, dtype=torch.bool, device=s.device).index_copy_(0, rm[0], rm[1])
-        melt, freeze = whole(melt), whole(freeze)
+        melt, freeze = embed(*melt, s.n), embed(*freeze, s.n)
         if n_freeze:  # join the body it rests on and take that body's velocity
             rows = torch.nonzero(freeze).squeeze(1)
             b = resting_body(sim, rows)

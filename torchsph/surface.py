@@ -31,7 +31,7 @@ from .fluid import dot, embed, gather_nb, pair_geometry
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import ParticleState, Phase
-from .free_surface import ColourGradient
+from .free_surface import ColourGradient, SelectionArrays
 from .thermal import flat_surface_layers
 from .wetting import ContactAngle
 
@@ -119,6 +119,7 @@ class SurfaceForces:
         self.n_surface = 0
         # the colour gradient, shared with the surface losses when both exist (one per step)
         self.colour = colour if colour is not None else ColourGradient(kernel, h, domain, params.threshold, compile)
+        self.bufs = SelectionArrays()  # the per-particle fields of an evaluation (see accelerations)
         self.wetting = None if params.contact_angle is None or not params.wetting else ContactAngle(
             params.contact_angle, kernel, h, domain, params.threshold)
         self._fns = {"moments": gradient_moments, "smooth": smoothed_pairs}
@@ -136,7 +137,7 @@ class SurfaceForces:
         self.nb_f, self.mask_f = table.gather(self.rows_f, within=True)
         self.fluid = fluid
         self.colour.want("surface", self.rows_f, table)
-        self._buf = None  # the evaluation's whole-length arrays, made at its first evaluation
+        self.bufs.reset()  # the evaluation's whole-length arrays, made at its first evaluation
         if self.wetting is not None:
             self.wetting.select(state, self.nb_f, self.mask_f, table)
 
@@ -162,12 +163,8 @@ class SurfaceForces:
         # whole-length arrays that only the rows ever write: made zero once per selection
         # (the rows are fixed until the next) and written in place at each evaluation, not
         # made and zeroed at every step (at full size, passes over every particle).
-        buf = self._buf
-        if buf is None or buf["flag"].shape[0] != n:
-            buf = self._buf = {"normal": torch.zeros_like(x), "kappa": torch.zeros_like(rho),
-                               "flag": torch.zeros_like(rho), "flag_s": torch.zeros_like(rho),
-                               "nfield": torch.zeros_like(x), "surf": torch.zeros_like(self.fluid)}
-        self.normal, self.kappa = buf["normal"], buf["kappa"]  # (zero off the surface rows)
+        buf = self.bufs
+        self.normal, self.kappa = buf.zeros("normal", x), buf.zeros("kappa", rho)  # (zero off the surface rows)
         parts = {}
         gns = torch.where(on, gn, torch.ones_like(gn))
         n_out = -g / gns.unsqueeze(-1) * onf
@@ -175,7 +172,7 @@ class SurfaceForces:
         if self.wetting is not None:  # the contact band: the melt's surface next to the solid
             band = self.wetting.contact_band(state, rows, g, on)
         self.normal.index_copy_(0, rows, n_out)
-        flag = buf["flag"].index_copy_(0, rows, on.to(rho.dtype))  # surface fluid particles
+        flag = buf.whole("flag", rho, rows, on.to(rho.dtype))  # surface fluid particles
         # force per unit mass = (force per area) x A_i / m_i = (force per area) |grad c| / (rho D)
         per_area = (gns / (rho.index_select(0, rows) * self.delta_norm)).unsqueeze(-1) * onf
         a = torch.zeros_like(n_out)
@@ -185,11 +182,11 @@ class SurfaceForces:
             flag_s = flag
             if band is not None:  # the band's normals blend in the solid's: not smoothed into
                 # the surface beside it, whose normals read the contact angle
-                flag_s = buf["flag_s"].index_copy_(0, rows, (on & ~band).to(rho.dtype))
+                flag_s = buf.whole("flag_s", rho, rows, (on & ~band).to(rho.dtype))
             nsm = self._fns["smooth"](x, self.normal, flag_s, m, rho, rows, nb, self.mask_f.to(rho.dtype),
                                       self.kernel, self.h, self.domain)
             nsm = nsm / nsm.norm(dim=-1, keepdim=True).clamp_min(1e-30) * onf
-            nfield = buf["nfield"].index_copy_(0, rows, nsm)  # (read at surface rows only)
+            nfield = buf.whole("nfield", x, rows, nsm)  # (read at surface rows only)
             gradn = solve_gradient(*self._fns["moments"](x, nfield, flag, m, rho, rows, nb, self.kernel,
                                                          self.h, self.domain))
             kappa = torch.diagonal(gradn, dim1=-2, dim2=-1).sum(-1)
@@ -199,7 +196,7 @@ class SurfaceForces:
             alpha = self.tension(state.T.index_select(0, rows))
             n_f = n_out
             if band is not None:
-                surf = buf["surf"].index_copy_(0, rows, on)
+                surf = buf.whole("surf", self.fluid, rows, on)
                 F = self.wetting.force(state, rows, nfield, self.kappa, surf, alpha)
                 parts["contact_line"] = F / m.index_select(0, rows).unsqueeze(-1)
                 a = a + parts["contact_line"]

@@ -53,7 +53,7 @@ import math
 import torch
 
 from .fluid import dot, gather_nb, pair_geometry
-from .free_surface import colour_pair_weights
+from .free_surface import SelectionArrays, colour_pair_weights
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import Phase
@@ -74,6 +74,7 @@ class ContactAngle:
         self.cos = math.cos(math.radians(angle_deg))
         self.kernel, self.h, self.domain, self.threshold = kernel, h, domain, threshold
         self.band = None  # (rows,) bool: the contact band among the melt rows at the last evaluation
+        self.bufs = SelectionArrays()
 
     def select(self, state, nb: torch.Tensor, mask: torch.Tensor, table=None):
         """At a pair selection: the melt rows of the table ``nb`` (``mask``: its real entries)
@@ -81,7 +82,7 @@ class ContactAngle:
         support before the next selection (the table reaches a skin further), so the band is
         sought among them alone: the work follows the melt beside the solid, not all melt."""
         solid = gather_nb(state.phase != Phase.FLUID, nb) & mask
-        self._bufs = None
+        self.bufs.reset()
         self.sub = torch.nonzero(solid.any(1)).squeeze(1)  # (a selection may read the host)
         self.nb_c, self.mask_c = nb.index_select(0, self.sub), mask.index_select(0, self.sub).to(state.x.dtype)
         self.solid_nb = solid.index_select(0, self.sub).to(state.x.dtype)
@@ -149,7 +150,7 @@ class ContactAngle:
         rows_c = rows.index_select(0, sub)
         dxp, r = self.geom  # (this state's: contact_band() came first)
         Wk = self.kernel.w(r, self.h) * mask
-        band_full = self._whole("band", surface, rows, self.band)
+        band_full = self.bufs.whole("band", surface, rows, self.band)
         beside = (gather_nb(surface & ~band_full, nb)).to(Wk.dtype) * Wk
         bsum = beside.sum(1)
         seen = (bsum > 0) & band
@@ -201,7 +202,7 @@ class ContactAngle:
         w_self = (state.m.index_select(0, rows_c) / state.rho.index_select(0, rows_c)) * self.kernel.w(
             torch.zeros((), dtype=Wk.dtype), self.h)
         norm = (melt_nb.sum(1) + w_self).unsqueeze(-1)
-        out = self._accumulator("spread", state.x, nb, rows_c)
+        out = self.bufs.accumulator("spread", state.x, nb, rows_c)
         out.index_add_(0, nb.reshape(-1), (melt_nb.unsqueeze(-1) * (F / norm).unsqueeze(1)).reshape(-1, state.dim))
         out.index_add_(0, rows_c, w_self.unsqueeze(-1) * F / norm)
         return out.index_select(0, rows)
@@ -227,28 +228,6 @@ class ContactAngle:
             return None
         x, idx, f = self._reaction
         return torch.zeros_like(x).index_add_(0, idx, f)
-
-    # Whole-length work arrays, made once per selection (:meth:`select`) and per length:
-    # only the selection's rows and their table entries are ever written, so they are reset
-    # on those alone at each evaluation (not made and zeroed whole at every step).
-    _bufs = None
-
-    def _buffer(self, name: str, like: torch.Tensor) -> torch.Tensor:
-        if self._bufs is None:
-            self._bufs = {}
-        b = self._bufs.get(name)
-        if b is None or b.shape != like.shape or b.dtype != like.dtype:
-            b = self._bufs[name] = torch.zeros_like(like)
-        return b
-
-    def _whole(self, name: str, like: torch.Tensor, rows: torch.Tensor, vals: torch.Tensor) -> torch.Tensor:
-        """``vals`` at ``rows``, zero elsewhere (``rows``: the selection's, fixed until the next)."""
-        return self._buffer(name, like).index_copy_(0, rows, vals)
-
-    def _accumulator(self, name: str, like: torch.Tensor, nb: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        """A zero array to sum into at ``nb`` and ``rows`` (zeroed there only)."""
-        b = self._buffer(name, like)
-        return b.index_fill_(0, nb.reshape(-1), 0.0).index_fill_(0, rows, 0.0)
 
 
 __all__ = ["ContactAngle"]
