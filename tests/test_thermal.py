@@ -137,6 +137,39 @@ def test_enthalpy_inversion():
     assert float((back - T).abs().max()) < 1e-6
 
 
+def test_banded_inversion_is_closed_form_off_the_mushy_band_and_newton_on_it():
+    """The inversion of a large scene: closed form where h(T) is linear (exact: h(T) of the
+    result gives H back to 1e-12 of c_p T), Newton on a fixed number of rows nearest the
+    mushy interval, and every row of the band that did not fit flagged for the fallback."""
+    from torchsph.thermal import Inversion, banded_temperature, linear_branches, mushy_capacity
+    prm = ThermalParams(conductivity=42.0, specific_heat=450.0, latent_heat=82000.0, solidus=1723.15, liquidus=1753.15)
+    g = torch.Generator().manual_seed(3)
+    T = torch.cat([300.0 + 3200.0 * torch.rand(5000, generator=g, dtype=torch.float64),
+                   torch.tensor([1558.15, 1738.15, 1918.15, 1918.16], dtype=torch.float64)])
+    H = enthalpy(T, prm, 0.0)
+    guess = T + 20.0 * (torch.rand(T.numel(), generator=g, dtype=torch.float64) - 0.5)
+    H_lo, H_hi, _, _ = linear_branches(prm, 0.0)
+    band = (H > H_lo) & (H < H_hi)
+    n_band = int(band.sum())
+    assert 0 < n_band < T.numel() // 4
+    cap = mushy_capacity(T, prm)
+    assert n_band + 64 <= cap < T.numel()
+    Tb, bad = banded_temperature(H, prm, 0.0, guess, cap)
+    far = ~band
+    # far rows: the closed form, exact (h of the result is H); Newton's rows converge from a
+    # guess within 10 K but for a few that cross the interval, flagged (as plain Newton's)
+    assert not bool((bad & far).any()) and int(bad.sum()) < n_band // 4
+    assert float((enthalpy(Tb[far], prm, 0.0) - H[far]).abs().max()) < 1e-12 * 450.0 * 3500.0
+    assert float((Tb[~bad] - T[~bad]).abs().max()) < 1e-11 * 3500.0  # (Newton stops at a residual of 1e-11 c_p T)
+    assert float((Inversion(Tb, bad, H, prm).fixed() - T).abs().max()) < 1e-8
+    # too small a capacity: the band rows left out are flagged, and fixed() inverts them
+    small = n_band // 3
+    Ts, bad_s = banded_temperature(H, prm, 0.0, guess, small)
+    assert int(bad_s.sum()) >= n_band - small and not bool((bad_s & far).any())
+    fixed = Inversion(Ts, bad_s, H, prm).fixed()
+    assert float((fixed - T).abs().max()) < 1e-8
+
+
 def test_radiative_cooling_of_isothermal_slab_vs_ode():
     """m c dT/dt = -sigma eps A (T^4 - T0^4): temperature drop within 1 % of the ODE's."""
     from torchsph.thermal import SIGMA_SB
@@ -261,11 +294,13 @@ def test_temperatures_checked_with_the_steps_other_reads_equal_those_checked_at_
     inversion at once."""
     from torchsph.thermal import Conduction, Inversion
 
+    unchecked = Conduction.to_temperature_unchecked
+
     def run(at_once):
         with monkeypatch.context() as m:
-            if at_once:
+            if at_once:  # the same inversion, its unconverged rows fixed at once
                 m.setattr(Conduction, "to_temperature_unchecked",
-                          lambda self, H, guess: Inversion(self.to_temperature(H, guess), None, H, self.prm))
+                          lambda self, H, guess: Inversion(unchecked(self, H, guess).fixed(), None, H, self.prm))
             _, cfg = load_case(CASES / case, over)
             _, sim = make_simulation(cfg)
             run_steps(sim, steps=300)

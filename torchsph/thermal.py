@@ -96,6 +96,53 @@ def newton_temperature(H: torch.Tensor, prm: ThermalParams, T_ref: float, guess:
     return T, bad
 
 
+SATURATED = 6.0  # |T - T_SL| / (T_L - T_S) from which erf is exactly +-1 in float64 (erf(6) = 1 - 2e-17)
+
+
+def linear_branches(prm: ThermalParams, T_ref: float) -> tuple[float, float, float, float]:
+    """(H_lo, H_hi, c_lo, c_hi): below H_lo (above H_hi) the computed h(T) is exactly
+    c_p (T - T_ref) + c_lo (+ c_hi), its latent part saturated, so T = T_ref + (H - c) / c_p
+    inverts it in closed form."""
+    dT = prm.liquidus - prm.solidus
+    tsl = 0.5 * (prm.solidus + prm.liquidus)
+    e_ref = math.erf((T_ref - tsl) / dT)
+    c_lo, c_hi = 0.5 * prm.latent_heat * (-1.0 - e_ref), 0.5 * prm.latent_heat * (1.0 - e_ref)
+    H_lo = prm.specific_heat * (tsl - SATURATED * dT - T_ref) + c_lo
+    H_hi = prm.specific_heat * (tsl + SATURATED * dT - T_ref) + c_hi
+    return H_lo, H_hi, c_lo, c_hi
+
+
+def mushy_capacity(T: torch.Tensor, prm: ThermalParams) -> int:
+    """How many rows :func:`banded_temperature` inverts by Newton: twice the rows now within
+    a band 1.5 times as wide as the one where h(T) is not linear, and 64 more (read once,
+    at a pair selection)."""
+    if prm.latent_heat <= 0.0 or T.numel() == 0:
+        return 0
+    tsl, dT = 0.5 * (prm.solidus + prm.liquidus), prm.liquidus - prm.solidus
+    return 2 * int(((T - tsl).abs() < 1.5 * SATURATED * dT).sum()) + 64
+
+
+def banded_temperature(H: torch.Tensor, prm: ThermalParams, T_ref: float, guess: torch.Tensor, cap: int):
+    """:func:`newton_temperature` with a fixed number of Newton rows: T in closed form where
+    h(T) is linear (:func:`linear_branches`: most rows of a large scene, far from the mushy
+    interval), Newton from ``guess`` on the ``cap`` rows whose enthalpy lies nearest the
+    mushy interval's. ``bad``: Newton's unconverged rows, and any row of the band that was
+    not among the ``cap`` (both inverted afresh by :meth:`Inversion.fixed`). Fixed shapes,
+    no host read. With ``cap`` >= the rows, plain :func:`newton_temperature`."""
+    if cap >= H.numel():
+        return newton_temperature(H, prm, T_ref, guess)
+    H_lo, H_hi, c_lo, c_hi = linear_branches(prm, T_ref)
+    hi = H >= H_hi
+    band = (H > H_lo) & ~hi
+    T = T_ref + (H - torch.where(hi, c_hi, c_lo)) / prm.specific_heat
+    near = torch.topk((H - 0.5 * (H_lo + H_hi)).abs(), cap, largest=False, sorted=False).indices
+    Tn, bad_n = newton_temperature(H.index_select(0, near), prm, T_ref, guess.index_select(0, near))
+    b_n = band.index_select(0, near)
+    T.index_copy_(0, near, torch.where(b_n, Tn, T.index_select(0, near)))
+    bad = band.index_fill(0, near, False).index_copy_(0, near, bad_n & b_n)
+    return T, bad
+
+
 def fix_temperature(H, prm: ThermalParams, T_ref: float, T: torch.Tensor, bad: torch.Tensor) -> torch.Tensor:
     """T with the ``bad`` rows inverted afresh by bisection (:func:`temperature_from_enthalpy`)."""
     idx = torch.nonzero(bad).squeeze(1)
@@ -374,6 +421,7 @@ class Conduction:
             self.nb_w = nbw
             self.mask_w = (mw & ~gather_nb(wall, nbw)).to(state.dtype)
         self.beam_rows = self.beam_candidates(x_ref, reach, comm)
+        self.mushy_cap = mushy_capacity(state.T.index_select(0, self.rows), self.prm)
         if self.losses.active:  # the rows whose area the next evaluation computes
             sub, _ = self._rows_to_compute("area")
             self.colour.want("area", self.rows if sub is None else self.rows.index_select(0, sub), table)
@@ -558,14 +606,14 @@ class Conduction:
     def to_enthalpy(self, T: torch.Tensor) -> torch.Tensor:
         return enthalpy(T, self.prm, 0.0)
 
+    mushy_cap = 1 << 62  # rows :func:`banded_temperature` inverts by Newton (all until a selection sets it)
     def to_temperature_unchecked(self, H: torch.Tensor, guess: torch.Tensor) -> "Inversion":
-        """T from the specific enthalpy by Newton from ``guess``, the convergence not read:
-        an :class:`Inversion` whose ``bad`` mask the step reads with its other decisions, and
-        whose ``fixed()`` inverts the rows that did not converge (a step across the mushy
-        interval; none in 300 steps of the preview's developed melt pool)."""
+        """T from the specific enthalpy (:func:`banded_temperature`: closed form off the mushy band, Newton
+        from ``guess`` on it), the convergence not read: an :class:`Inversion` whose ``bad`` mask the step
+        reads with its other decisions, and whose ``fixed()`` inverts the rows that did not converge."""
         if self.prm.latent_heat <= 0.0:  # exact: nothing to check
             return Inversion(self.to_temperature(H, guess), None, H, self.prm)
-        T, bad = newton_temperature(H, self.prm, 0.0, guess)  # (an empty H gets an empty mask: every process reads alike)
+        T, bad = banded_temperature(H, self.prm, 0.0, guess, self.mushy_cap)  # (an empty H gets an empty mask: every process reads alike)
         return Inversion(T, bad, H, self.prm)
 
     def to_temperature(self, H: torch.Tensor, guess: torch.Tensor | None = None) -> torch.Tensor:
