@@ -20,7 +20,7 @@ from test_thermal import cloud_conduction
 def pair_sum(th, state, T):
     """The plain pair sum over the table on ``rows`` (R,)."""
     return conduction_pairs(state.x, th.wall_temperature(state, T), th.k, state.m, state.rho, th.zeta_cache, th.rows,
-                            th.nb, th.kernel, th.h, th.domain)
+                            th.table.gather(th.rows, within=True)[0], th.kernel, th.h, th.domain)
 
 
 def checking(sim):
@@ -210,7 +210,7 @@ def test_an_operator_that_follows_a_new_row_set_is_the_one_made_afresh():
     args = (c.kernel, c.h, c.domain)
     a = ConductionOperator(rows_a, nb[rows_a], mask[rows_a], st.x, steady, body, *args)
     steady_b = steady & (torch.rand(n, generator=g, dtype=torch.float64) > 0.05)  # some melted since
-    followed = a.follow(rows_b, nb[rows_b], mask[rows_b], st.x, steady_b, body)
+    followed = a.follow(rows_b, lambda at: (nb[rows_b][at], mask[rows_b][at]), st.x, steady_b, body)
     afresh = ConductionOperator(rows_b, nb[rows_b], mask[rows_b], st.x, steady_b, body, *args)
     for name in ("g_row", "g_i", "g_j", "g_f", "crow", "row_of"):
         assert torch.equal(getattr(followed, name), getattr(afresh, name)), name

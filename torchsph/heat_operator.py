@@ -120,12 +120,12 @@ class ConductionOperator:
         self.G = None
         self.built = False
 
-    def follow(self, rows: torch.Tensor, nb: torch.Tensor, mask: torch.Tensor, x_op: torch.Tensor,
+    def follow(self, rows: torch.Tensor, table_of, x_op: torch.Tensor,
                steady: torch.Tensor, body: torch.Tensor) -> "ConductionOperator":
         """The operator of another row set (same particles, same ``x_op``): the entries of
         the rows that stay are carried (less those of particles no longer steady), only the
-        new rows' entries are made (``nb``, ``mask``: the table of ``rows``), the left rows'
-        are dropped. Every entry is a function of ``x_op`` and its pair alone and the order
+        new rows' entries are made (``table_of(positions)``: (nb, mask), the table rows of
+        ``rows[positions]``, read for the new rows only), the left rows' are dropped. Every entry is a function of ``x_op`` and its pair alone and the order
         is the canonical (row, column) one, so the result is bit for bit the operator
         :meth:`__init__` makes of the same arguments, at the cost of the new rows only."""
         n, dev = steady.shape[0], rows.device
@@ -140,8 +140,7 @@ class ConductionOperator:
         k_row, k_i, k_j, k_f = (t.index_select(0, c) for t in (r_keep, self.g_i, self.g_j, self.g_f))
         # made: the rows that are new
         fresh = torch.nonzero(self.row_of.index_select(0, rows) < 0).squeeze(1)
-        n_row, n_i, n_j, n_f = rigid_entries(fresh, rows.index_select(0, fresh), nb.index_select(0, fresh),
-                                             mask.index_select(0, fresh), x_op, steady, body,
+        n_row, n_i, n_j, n_f = rigid_entries(fresh, rows.index_select(0, fresh), *table_of(fresh), x_op, steady, body,
                                              self.kernel, self.h, self.domain)
         # merged in (row, column) order: the rows are disjoint, each part is in order, so an
         # entry's place is its row's start plus its rank within its part's row
@@ -217,7 +216,7 @@ class ConductionOperator:
             live = self.steady.index_select(0, ri) & self.steady.index_select(0, rj)
             gr = material_factor(k.index_select(0, ri), k.index_select(0, rj), zeta.index_select(0, ri),
                                  zeta.index_select(0, rj)) * self.g_f.index_select(0, redo)
-            g = self.g.clone().index_copy_(0, redo, torch.where(live, gr, torch.zeros_like(gr)))
+            g = self.g.index_copy_(0, redo, torch.where(live, gr, torch.zeros_like(gr)))  # (G is made anew from it below)
         else:
             live = self.steady.index_select(0, i) & self.steady.index_select(0, j)
             g = material_factor(k.index_select(0, i), k.index_select(0, j), zeta.index_select(0, i),

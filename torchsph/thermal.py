@@ -374,7 +374,7 @@ class Conduction:
         self.zeta_cache = None
         self.area_cache = None
         self.rows = torch.nonzero(~wall if active is None else ~wall & active).squeeze(1)
-        self.nb, mask_r = table.gather(self.rows, within=True)
+        self.table = table  # (its rows are read where computed: rows_and_table)
         solid = state.phase == Phase.SOLID
         op = getattr(self, "op", None)
         x_ref = state.x if x_ref is None else x_ref
@@ -404,10 +404,10 @@ class Conduction:
         else:  # a phase change, or G kept: melt leaves it, what froze joins only when G is made anew
             self.steady = self.steady & solid
         if not reuse:
-            op = self.op = ConductionOperator(self.rows, self.nb, mask_r, self.x_op,
+            op = self.op = ConductionOperator(self.rows, *table.gather(self.rows, within=True), self.x_op,
                                               self.steady, state.body, self.kernel, self.h, self.domain)
         elif not keep:
-            op = self.op = op.follow(self.rows, self.nb, mask_r, self.x_op, self.steady, state.body)
+            op = self.op = op.follow(self.rows, lambda at: table.gather(self.rows[at], within=True), self.x_op, self.steady, state.body)
         op.select(table, self.steady, state.body, work)
         self.rows_w = torch.nonzero(wall if work is None else wall & work).squeeze(1)
         own = getattr(self, "owned", None)  # (ghosts off the rows: their owners count them)
@@ -511,7 +511,7 @@ class Conduction:
         zeta ~ 0.5) the plain SPH operator, which acts as an insulated boundary, is kept.
         Walls count as 1."""
         sub, prev = self._rows_to_compute("zeta")
-        rows, nb = (self.rows, self.nb) if sub is None else (self.rows.index_select(0, sub), self.nb.index_select(0, sub))
+        rows, nb = rows_and_table(self, sub)
         z = self._zeta_fn(state.x, state.m, state.rho, rows, nb, self.kernel, self.h, self.domain)
         z = torch.where((z > 0.95) & (z < 1.05), z, torch.ones_like(z))
         in_rows = self._computed("zeta", state.n)
@@ -636,13 +636,20 @@ class Conduction:
         return r if not self.rows_w.numel() else torch.minimum(r, state.rho.index_select(0, self.rows_w).min())
 
 
+def rows_and_table(th, sub: torch.Tensor | None = None):
+    """(rows, nb): the conducting rows of ``th`` (:class:`Conduction`), or their positions
+    ``sub``, with their rows of the selection's neighbour table, read for those rows only."""
+    rows = th.rows if sub is None else th.rows.index_select(0, sub)
+    return rows, th.table.gather(rows, within=True)[0]
+
+
 def surface_area(th, state: ParticleState) -> torch.Tensor:
     """Area (m^2) of free surface each particle of ``th`` (:class:`Conduction`) stands for: V_i |grad c_i| (the CSF
     surface delta) divided by its flat-lattice sum, so that a flat surface gets
     exactly its area. Particles with |grad c| h < 0.05 (the interior) get none.
     Also sets ``th.normal``, the outward unit normal of surface particles (0 inside)."""
     sub, prev = th._rows_to_compute("area")
-    rows, nb = (th.rows, th.nb) if sub is None else (th.rows.index_select(0, sub), th.nb.index_select(0, sub))
+    rows, nb = rows_and_table(th, sub)
     want, th.area_want = th.area_want, None
     if want is not None and want[0] is th.area_prev and want[1] is th.area_ok:  # the rows asked for
         g = th.colour.of(state, "area")
