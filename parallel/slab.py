@@ -28,6 +28,8 @@ import numpy as np
 import torch
 from mpi4py import MPI
 
+from torchsph.particles import fluid_set
+
 STATE_PREFIX = "state."
 
 
@@ -322,7 +324,7 @@ class SlabComm:
                 if q != self.rank:
                     out[q]["_pos"] = _np(torch.nonzero(hot.index_select(0, self.send[q])).squeeze(1))
         got = self.c.alltoall(out)
-        changed = {}
+        changed = False
         for q, g in enumerate(got):
             rows = self.recv[q]
             if "_pos" in g:
@@ -332,10 +334,12 @@ class SlabComm:
             for k, v in g.items():
                 if k not in arrays:  # a lazily built cache this rank has not built: it builds it whole
                     continue
-                base = changed.get(k, arrays[k])
-                changed[k] = base.index_copy(0, rows, torch.as_tensor(v, dtype=base.dtype))
-        if changed:
-            sim.set_particle_arrays(changed)
+                # in place, on the ghost rows only: a copy of every whole array at every step
+                # cost 20-45 ms of a full-scene step on each rank
+                arrays[k].index_copy_(0, rows, torch.as_tensor(v, dtype=arrays[k].dtype))
+                changed = True
+        if changed:  # (a ghost's phase may have changed)
+            fluid_set(sim)
 
     # a migration moves the slab boundaries when the ranks' work differs by more than this
     REBALANCE_ABOVE = 1.1

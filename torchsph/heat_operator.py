@@ -89,6 +89,8 @@ class ConductionOperator:
     (its entries are zeroed when the values are next made, :meth:`build`, with the current
     zeta) and its pairs are evaluated every step from then on."""
 
+    at = None  # the rows' places among the conducting rows, where they are some of them (a decomposed run's owned)
+
     def __init__(self, rows: torch.Tensor, nb: torch.Tensor, mask: torch.Tensor, x_op: torch.Tensor,
                  steady: torch.Tensor, body: torch.Tensor, kernel: Kernel, h: float, domain: Domain):
         """``nb``, ``mask``: the table of ``rows``; ``x_op``, ``steady``: see the class."""

@@ -36,6 +36,10 @@ class PhaseChange:
         phase, T = s.phase.index_select(0, rows), s.T.index_select(0, rows)
         melt = (phase == Phase.SOLID) & (T > self.T_L)
         freeze = (phase == Phase.FLUID) & (T < self.T_S)
+        own = getattr(sim.thermal, "owned", None)
+        if own is not None:  # a ghost's temperature is its owner's only after the step's refresh
+            own = own.index_select(0, rows)
+            melt, freeze = melt & own, freeze & own
         return (rows, melt), (rows, freeze), torch.stack([melt.sum(), freeze.sum()])
 
     def change(self, sim, melt, freeze, n_melt: int, n_freeze: int, total):

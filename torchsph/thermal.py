@@ -404,8 +404,7 @@ class Conduction:
         else:  # a phase change, or G kept: melt leaves it, what froze joins only when G is made anew
             self.steady = self.steady & solid
         if not reuse:
-            op = self.op = ConductionOperator(self.rows, *table.gather(self.rows, within=True), self.x_op,
-                                              self.steady, state.body, self.kernel, self.h, self.domain)
+            op = self.op = owned_operator(self, table, state)
         elif not keep:
             op = self.op = op.follow(self.rows, lambda at: table.gather(self.rows[at], within=True), self.x_op, self.steady, state.body)
         op.select(table, self.steady, state.body, work)
@@ -503,7 +502,8 @@ class Conduction:
         """div(k grad T) (W/m^3) on ``rows`` only."""
         T = self.wall_temperature(state, T)
         self.prepare(state)
-        return self.op.apply(state.x, T, self.k, state.m, state.rho, self.zeta_cache)
+        q = self.op.apply(state.x, T, self.k, state.m, state.rho, self.zeta_cache)
+        return q if self.op.at is None else T.new_zeros(self.rows.shape).index_copy_(0, self.op.at, q)
 
     def zeta(self, state: ParticleState) -> torch.Tensor:
         """Per-particle Laplacian normalisation, used where it lies in [0.95, 1.05] (else 1): it corrects the
@@ -634,6 +634,23 @@ class Conduction:
         if self.rows.numel():
             r = torch.minimum(state.rho.index_select(0, self.rows).min(), r)
         return r if not self.rows_w.numel() else torch.minimum(r, state.rho.index_select(0, self.rows_w).min())
+
+
+def owned_operator(th, table, state: ParticleState) -> ConductionOperator:
+    """A new conduction operator on the rows of ``th`` (:class:`Conduction`), or in a
+    decomposed run on the owned ones among them (``op.at``: their places in the rows). No
+    owned particle's rate in a step reads a ghost's conduction: a ghost's temperature and
+    rate are its owner's, refreshed at every step's end, and the ghost rows keep only the
+    per-row work (the extrapolated temperatures the owned rows' sums read)."""
+    rows = th.rows
+    own = getattr(th, "owned", None)
+    if own is not None:
+        rows = rows.index_select(0, torch.nonzero(own.index_select(0, th.rows)).squeeze(1))
+    op = ConductionOperator(rows, *table.gather(rows, within=True), th.x_op, th.steady, state.body,
+                            th.kernel, th.h, th.domain)
+    if own is not None:
+        op.at = torch.searchsorted(th.rows, rows)
+    return op
 
 
 def rows_and_table(th, sub: torch.Tensor | None = None):
