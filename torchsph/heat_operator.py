@@ -127,7 +127,8 @@ class ConductionOperator:
         """The operator of another row set (same particles, same ``x_op``): the entries of
         the rows that stay are carried (less those of particles no longer steady), only the
         new rows' entries are made (``table_of(positions)``: (nb, mask), the table rows of
-        ``rows[positions]``, read for the new rows only), the left rows' are dropped. Every entry is a function of ``x_op`` and its pair alone and the order
+        ``rows[positions]``, read for the new rows only), the left rows' are dropped. Every
+        entry is a function of ``x_op`` and its pair alone and the order
         is the canonical (row, column) one, so the result is bit for bit the operator
         :meth:`__init__` makes of the same arguments, at the cost of the new rows only."""
         n, dev = steady.shape[0], rows.device

@@ -139,7 +139,7 @@ def banded_temperature(H: torch.Tensor, prm: ThermalParams, T_ref: float, guess:
     Tn, bad_n = newton_temperature(H.index_select(0, near), prm, T_ref, guess.index_select(0, near))
     b_n = band.index_select(0, near)
     T.index_copy_(0, near, torch.where(b_n, Tn, T.index_select(0, near)))
-    bad = band.index_fill(0, near, False).index_copy_(0, near, bad_n & b_n)
+    bad = band.index_copy(0, near, bad_n & b_n)  # (the band rows not among them stay flagged)
     return T, bad
 
 
