@@ -27,7 +27,7 @@ def main(argv=None):
     e = sim.energy_balance()
     if comm.rank == 0:
         np.savez(out, t=sim.t, step=sim.step, energy=np.array([e.get("stored_J", 0.0), e.get("residual_J", 0.0)]),
-                 imbalance=np.array(comm.imbalance or [1.0]), migrations=comm.n_migrations,
+                 imbalance=np.array(comm.imbalance or [1.0]), migrations=comm.n_migrations, kept=comm.n_kept,
                  **{k.replace(".", "_"): v for k, v in g.items()})
 
 

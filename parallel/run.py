@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from mpi4py import MPI
 
+from torchsph.checkpoint import FORMAT as ckpt_format
 from torchsph.checkpoint import CheckpointError, check_case, read, recorded_physics, write
 from torchsph.runner import SerialRun, make_simulation, run_case
 from torchsph.state import ParticleState
@@ -61,15 +62,43 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | Non
     write(d, path)
 
 
+def global_from_single(d: dict, cfg: dict, path: str, recorded: dict | None = None) -> dict:
+    """A one-process checkpoint as a global one: restored into a one-process simulation of
+    the same case (every rank alike), its per-particle arrays and totals taken from there.
+    A run started in one process continues on any number of ranks."""
+    from torchsph import checkpoint as ckpt
+
+    _, one = make_simulation(cfg)
+    extra = ckpt.restore(one, d, cfg, path, recorded)
+    for name, obj in (("feeder", one.feeder), ("escape", one.escape)):
+        if obj is not None and name in extra:
+            obj.load_state_dict(extra[name])
+    g = {"format": FORMAT, "config_hash": d.get("config_hash"), "physics": d.get("physics"),
+         "t": one.t, "step": one.step, "arrays": {k: v.cpu() for k, v in one.particle_arrays().items()},
+         "energy": {k: float(v) for k, v in one.energy.items()},
+         "heat": {k: float(v) for k, v in getattr(one, "heat_totals", {}).items()},
+         "E0": float(one.E0) if getattr(one, "E0", None) is not None else None,
+         "n_builds": one.nl.n_builds, "rng": d["rng"], "body_velocity": one.body_velocity.cpu(),
+         "stale": one.stale, "active_age": one.active_set.age if one.active_set is not None else 0,
+         "feeder": one.feeder.state_dict() if one.feeder is not None else None,
+         "escape": one.escape.state_dict() if one.escape is not None else None,
+         "extra": {k: v for k, v in extra.items() if k not in ("feeder", "escape", "step_control_changes")}}
+    del one
+    return g
+
+
 def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | None = None):
+    if d.get("format") == ckpt_format:  # written by one process
+        d = global_from_single(d, cfg, path, recorded)
     if d.get("format") != FORMAT:
-        raise CheckpointError(f"--restart {path}: not a global (MPI) checkpoint; restart it without mpirun")
+        raise CheckpointError(f"--restart {path}: not a torchsph checkpoint (format {d.get('format')!r})")
     changes = check_case(d, cfg, path, recorded)
     dev, dt = sim.state.device, sim.state.dtype
     comm.bounds = None  # equal shares of the checkpoint's particles on this run's ranks
     local = comm.distribute({k: v for k, v in d["arrays"].items()}, first=True)
     local = {k: v.to(dev) for k, v in local.items()}
     sim.rearm(local, table=lambda: comm.table_at_reference(sim))  # the table as the last rebuild made it
+    comm.mark(sim)
     sim.nl.n_builds = d["n_builds"]
     if "body_velocity" in d:
         bv = d["body_velocity"].to(device=dev, dtype=dt)

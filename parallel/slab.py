@@ -102,10 +102,14 @@ class SlabComm:
     """The :class:`torchsph.comm.SerialComm` interface over MPI ranks (see the module doc)."""
 
     def __init__(self, search: float, skin: float, stages: int = 3, comm=None,
-                 rebalance_every: int = 0, weights: dict | None = None):
+                 rebalance_every: int = 0, weights: dict | None = None, slack_skins: float = 4.0):
         self.c = _TimedComm(comm or MPI.COMM_WORLD)
         self.rank, self.size = self.c.Get_rank(), self.c.Get_size()
-        self.halo = stages * search + skin
+        # the halo: the step's chain of stages, plus the motion between migrations: the
+        # Verlet skin and the slack (a migration is due once some particle has moved half
+        # the slack since the last: until then a rebuild keeps the rows, ghosts and caches)
+        self.slack = slack_skins * skin
+        self.halo = stages * search + skin + self.slack
         self.search = search
         self.depth = stages - 1  # ghost levels whose continuity the owned rows depend on
         self.n_owned = 0
@@ -187,51 +191,12 @@ class SlabComm:
 
     def claim(self, sim, new):
         """Of particles added on every rank alike (a fed wire's layer): the ones this rank
-        owns, then copies of the ones other ranks own within this rank's halo (ghosts from
-        the start, so no rank misses a neighbour until the next migration)."""
-        from dataclasses import fields as dc_fields
-        from torchsph.state import ParticleState
-
-        x = _np(new.x)[:, 0]
-        dest = np.searchsorted(self.bounds, x, side="right") - 1
-        lo, hi = self.bounds[self.rank] - self.halo, self.bounds[self.rank + 1] + self.halo
-        near = (x >= lo) & (x < hi)
-        own = dest == self.rank
-        # ghost order: by owner rank, then as given (the owner appends its send rows alike)
-        ghost = np.concatenate([np.nonzero(near & (dest == q))[0] for q in range(self.size) if q != self.rank])
-        rows = np.concatenate([np.nonzero(own)[0], ghost]).astype(np.int64)
-        self._new = {"n_own": int(own.sum()), "ghost_owner": dest[ghost],
-                     # rows among this rank's new particles that rank q holds as ghosts
-                     "send": [np.nonzero((x[own] >= self.bounds[q] - self.halo) & (x[own] < self.bounds[q + 1] + self.halo))[0]
-                              if q != self.rank else np.zeros(0, np.int64) for q in range(self.size)]}
-        sel = torch.as_tensor(rows, device=new.x.device)
-        local = ParticleState(**{f.name: getattr(new, f.name).index_select(0, sel) for f in dc_fields(new)})
-        mine = torch.zeros(local.n, dtype=torch.bool, device=new.x.device)
-        mine[: self._new["n_own"]] = True
-        return local, mine
+        owns, then copies of the ones other ranks own within this rank's halo."""
+        return _claim(self, sim, new)
 
     def place_new(self, sim, k):
-        """The k rows just appended (this rank's new particles, then new ghosts): the owned
-        ones move in front of the old ghosts, the ghosts join their owners' blocks, and the
-        send lists gain the owned ones other ranks now hold as ghosts."""
-        n = sim.state.n
-        n0 = n - k
-        k_own = self._new["n_own"]
-        dev = sim.state.device
-        ar = lambda a, b: torch.arange(a, b, device=dev)  # noqa: E731
-        perm = torch.cat([ar(0, self.n_owned), ar(n0, n0 + k_own), ar(self.n_owned, n0), ar(n0 + k_own, n)])
-        sim.set_particle_arrays({key: v.index_select(0, perm) for key, v in sim.particle_arrays().items()
-                                 if v.shape[0] == n})
-        owned0 = self.n_owned
-        self.n_owned += k_own
-        self.recv = [r + k_own for r in self.recv]  # old ghosts moved down by k_own
-        g_rows = np.arange(n - (k - k_own), n)  # the new ghosts' rows now
-        owner = self._new["ghost_owner"]
-        for q in range(self.size):
-            add = torch.as_tensor(g_rows[owner == q], dtype=torch.long)
-            self.recv[q] = torch.cat([self.recv[q], add])
-            self.send[q] = torch.cat([self.send[q], torch.as_tensor(owned0 + self._new["send"][q], dtype=torch.long)])
-        return perm
+        """The k rows just appended: see :func:`_place_new`."""
+        return _place_new(self, sim, k)
 
     def table_at_reference(self, sim):
         """The neighbour table as the last rebuild made it: all pairs within the Verlet radius
@@ -254,8 +219,38 @@ class SlabComm:
         if self._t0 is not None:
             self.busy += (t - self._t0[0]) - (w - self._t0[1])
         self._t0 = (t, w)
-        if sim.rebuilt:
+        if sim.rebuilt and self.migration_due(sim):
             self.migrate(sim)
+
+    n_kept = 0  # rebuilds that kept the decomposition (no migration was due)
+
+    def migration_due(self, sim) -> bool:
+        """After a rebuild: whether some particle has moved more than half the halo's slack
+        since the last migration (at the rebuild's positions, or now), over every rank. Until
+        then every particle within the halo's reach of a slab stays among its ghosts until
+        the next rebuild (a Verlet interval adds at most half a skin), and the rows, the
+        ghost lists and every per-rebuild cache stay."""
+        x_mig = sim.nl.x_mig
+        n = self.n_owned
+        if x_mig is None or x_mig.shape[0] != sim.state.n:
+            return True
+        d = 0.0
+        if n:
+            dom = sim.domain
+            a = dom.minimum_image(sim.nl.x_ref[:n] - x_mig[:n])
+            b = dom.minimum_image(sim.state.x[:n] - x_mig[:n])
+            d = float(torch.maximum((a * a).sum(-1), (b * b).sum(-1)).max())
+        d = self.c.allreduce(d, op=MPI.MAX)
+        due = d > (0.5 * self.slack) ** 2
+        self.n_kept += not due
+        return due
+
+    def mark(self, sim):
+        """The positions of a new decomposition (what :meth:`migration_due` measures from);
+        the partial rebuild's body rows, of the rows before, are dropped (the next rebuild is
+        a full one)."""
+        sim.nl.x_mig = sim.state.x.clone()
+        sim.nl.static = sim.nl.x_full = None
 
     def end_step(self, sim):
         self.refresh(sim)
@@ -380,6 +375,7 @@ class SlabComm:
             self.bounds = equal_bounds(self.c, self.size, _np(owned_arrays["state.x"])[:, 0], w)
         new = self.distribute(owned_arrays)
         sim.rearm(new, table=lambda: self.table_at_reference(sim))
+        self.mark(sim)
 
     # --- gathering ----------------------------------------------------------------------------
     def gather_owned(self, sim, names=None) -> dict[str, np.ndarray] | None:
@@ -394,6 +390,56 @@ class SlabComm:
         out = {k: np.concatenate([g[k] for g in got]) for k in mine}
         order = np.argsort(out["state.id"], kind="stable")
         return {k: v[order] for k, v in out.items()}
+
+
+def _claim(comm, sim, new):
+    """Of particles added on every rank alike (a fed wire's layer): the ones this rank
+    owns, then copies of the ones other ranks own within this rank's halo (ghosts from
+    the start, so no rank misses a neighbour until the next migration)."""
+    from dataclasses import fields as dc_fields
+    from torchsph.state import ParticleState
+
+    x = _np(new.x)[:, 0]
+    dest = np.searchsorted(comm.bounds, x, side="right") - 1
+    lo, hi = comm.bounds[comm.rank] - comm.halo, comm.bounds[comm.rank + 1] + comm.halo
+    near = (x >= lo) & (x < hi)
+    own = dest == comm.rank
+    # ghost order: by owner rank, then as given (the owner appends its send rows alike)
+    ghost = np.concatenate([np.nonzero(near & (dest == q))[0] for q in range(comm.size) if q != comm.rank])
+    rows = np.concatenate([np.nonzero(own)[0], ghost]).astype(np.int64)
+    comm._new = {"n_own": int(own.sum()), "ghost_owner": dest[ghost],
+                 # rows among this rank's new particles that rank q holds as ghosts
+                 "send": [np.nonzero((x[own] >= comm.bounds[q] - comm.halo) & (x[own] < comm.bounds[q + 1] + comm.halo))[0]
+                          if q != comm.rank else np.zeros(0, np.int64) for q in range(comm.size)]}
+    sel = torch.as_tensor(rows, device=new.x.device)
+    local = ParticleState(**{f.name: getattr(new, f.name).index_select(0, sel) for f in dc_fields(new)})
+    mine = torch.zeros(local.n, dtype=torch.bool, device=new.x.device)
+    mine[: comm._new["n_own"]] = True
+    return local, mine
+
+
+def _place_new(comm, sim, k):
+    """The k rows just appended (this rank's new particles, then new ghosts): the owned
+    ones move in front of the old ghosts, the ghosts join their owners' blocks, and the
+    send lists gain the owned ones other ranks now hold as ghosts."""
+    n = sim.state.n
+    n0 = n - k
+    k_own = comm._new["n_own"]
+    dev = sim.state.device
+    ar = lambda a, b: torch.arange(a, b, device=dev)  # noqa: E731
+    perm = torch.cat([ar(0, comm.n_owned), ar(n0, n0 + k_own), ar(comm.n_owned, n0), ar(n0 + k_own, n)])
+    sim.set_particle_arrays({key: v.index_select(0, perm) for key, v in sim.particle_arrays().items()
+                             if v.shape[0] == n})
+    owned0 = comm.n_owned
+    comm.n_owned += k_own
+    comm.recv = [r + k_own for r in comm.recv]  # old ghosts moved down by k_own
+    g_rows = np.arange(n - (k - k_own), n)  # the new ghosts' rows now
+    owner = comm._new["ghost_owner"]
+    for q in range(comm.size):
+        add = torch.as_tensor(g_rows[owner == q], dtype=torch.long)
+        comm.recv[q] = torch.cat([comm.recv[q], add])
+        comm.send[q] = torch.cat([comm.send[q], torch.as_tensor(owned0 + comm._new["send"][q], dtype=torch.long)])
+    return perm
 
 
 def make_comm(cfg: dict, comm=None) -> SlabComm:
@@ -416,4 +462,5 @@ def make_comm(cfg: dict, comm=None) -> SlabComm:
         if cfg["surface"].get("contact_angle_deg") is not None and cfg["surface"].get("wetting", True):
             stages = 7  # the contact line reads the curvature beside it, and spreads its force
     return SlabComm(kernel.radius(h) + skin, skin, stages=stages, comm=comm,
-                    rebalance_every=nm.get("rebalance_every", 0))
+                    rebalance_every=nm.get("rebalance_every", 0),
+                    slack_skins=nm.get("migration_slack_over_skin", 4.0))

@@ -77,7 +77,8 @@ def _defaults(section: str, cfg: dict) -> dict:
 # max_compression only says when a run is stopped as broken, not how it steps; partial_rebuild
 # only how the same neighbour pairs are found.
 STEP_CONTROL = ("numerics.cfl", "numerics.dt_s", "numerics.allow_unstable_dt", "numerics.compile",
-                "numerics.rebalance_every", "numerics.max_compression", "numerics.partial_rebuild")
+                "numerics.rebalance_every", "numerics.max_compression", "numerics.partial_rebuild",
+                "numerics.migration_slack_over_skin")
 
 
 def _changed(old: dict, cfg: dict) -> list[tuple[str, object, object]]:

@@ -126,9 +126,12 @@ NUMERICS = {
                            doc="leave solid within active_tolerance_K of ambient out of the work (--no-skip: false)"),
     "partial_rebuild": Key("bool", default=True,
                            doc="neighbour rebuilds keep the largest rigid body's mutual pairs and search "
-                               "only the other rows (one process; false: full rebuilds)"),
+                               "only the other rows (false: full rebuilds)"),
     "rebalance_every": Key("int", default=10, ge=0,
                            doc="MPI: move slab boundaries to equal measured cost every this many migrations (0 = never)"),
+    "migration_slack_over_skin": Key("float", default=4.0, ge=0, le=20.0,
+                                     doc="MPI: halo slack, in Verlet skins, for the motion between migrations; a "
+                                         "rebuild migrates once a particle moved half of it (0 = every rebuild)"),
     "active_tolerance_K": Key("float", default=1.0, gt=0,
                               doc="|T - ambient| below which solid far from heat is left out"),
 }

@@ -345,6 +345,7 @@ class VerletList:
         self.n_partial = 0  # of the builds, partial ones
         self.static: torch.Tensor | None = None  # rows whose mutual pairs the table holds (one body)
         self.x_full: torch.Tensor | None = None  # positions at the last full build
+        self.x_mig: torch.Tensor | None = None  # a decomposed run's positions at the last migration
 
     @property
     def nb(self) -> torch.Tensor | None:

@@ -35,6 +35,7 @@ def particle_arrays(sim) -> dict[str, torch.Tensor]:
     d = {f"state.{f.name}": getattr(sim.state, f.name) for f in fields(sim.state)}
     d["dvdt"], d["drhodt"], d["dTdt"] = sim.dvdt, sim.drhodt, sim.dTdt
     d["nl.x_ref"] = sim.nl.x_ref
+    d["nl.x_mig"] = sim.nl.x_mig
     th = sim.thermal
     if th is not None:
         d.update({"th.k": th.k, "th.T_set": th.T_set, "th.steady": th.steady, "th.x_op": th.x_op,
@@ -96,6 +97,8 @@ def rearm(sim, arrays: dict[str, torch.Tensor], table=None):
         if k in LAZY_CACHES and k not in arrays:
             owner, name = k.split(".", 1)
             setattr(owners[owner], name, None)
+    if sim.thermal is not None:  # (the conduction operator names particles by row)
+        sim.thermal.op = None
     if table is not None:
         table()
     sim.select_pairs()
@@ -121,6 +124,8 @@ def add_particles(sim, new: ParticleState):
         return new, None
     z = lambda t: torch.cat([t, torch.zeros((new.n,) + t.shape[1:], dtype=t.dtype, device=t.device)])  # noqa: E731
     sim.state = ParticleState.cat([sim.state, new])
+    if sim.nl.x_mig is not None:  # (a decomposition measures their motion from here)
+        sim.nl.x_mig = torch.cat([sim.nl.x_mig, new.x])
     sim.dvdt, sim.drhodt = z(sim.dvdt), z(sim.drhodt)
     if sim.dTdt is not None:
         sim.dTdt = z(sim.dTdt)

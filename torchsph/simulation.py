@@ -47,7 +47,7 @@ class Simulation:
         (``outside(x, t)``, :class:`~torchsph.deposition.EscapeBox`): they are removed at the
         next neighbour rebuild. ``partial_rebuild``: neighbour rebuilds keep the largest rigid
         body's mutual pairs and search only the other rows (:class:`~torchsph.neighbors.VerletList`;
-        one process, scenes with fluid). ``terms``: the composable terms the case names
+        scenes with fluid; a decomposed run's first rebuild after a migration is a full one). ``terms``: the composable terms the case names
         (:mod:`torchsph.terms`), each evaluated at its hooks and nowhere else."""
         self.state = state
         self.terms = list(terms)
@@ -87,7 +87,7 @@ class Simulation:
         self.dx = dx  # initial particle spacing
         self.damping_time = damping_time  # settling: velocity damping for t < damping_time
         self.nl = VerletList(some.kernel.radius(some.h), skin, domain)
-        self.partial_rebuild = partial_rebuild and self.comm.size == 1 and fluid is not None
+        self.partial_rebuild = partial_rebuild and fluid is not None
         self.t = 0.0
         self.step = 0
         self.stale = False  # the active set must be refreshed at the next rebuild point

@@ -375,38 +375,9 @@ class Conduction:
         self.area_cache = None
         self.rows = torch.nonzero(~wall if active is None else ~wall & active).squeeze(1)
         self.table = table  # (its rows are read where computed: rows_and_table)
-        solid = state.phase == Phase.SOLID
-        op = getattr(self, "op", None)
         x_ref = state.x if x_ref is None else x_ref
-        # Decomposed runs make G anew at every selection: the ghosts' phases and steady flags
-        # arrive from their owners only at the end of a step, after the selection (kept across
-        # selections, the 2-rank deposition test left the single-process run by 2e-6 in t
-        # after 300 steps; made anew, it agrees to 1e-10)
         comm = getattr(self, "comm", None)
-        reuse = (op is not None and self.steady is not None and self.steady.shape[0] == state.n
-                 and self.x_op is not None and self.x_op.shape[0] == state.n and op.row_of.shape[0] == state.n
-                 and not (comm is not None and comm.size > 1) and not self.provisional)
-        keep = reuse and op.same_rows(self.rows, state.n)
-        if reuse and not keep and new_table:
-            # another row set (the active set moved): G follows it, carrying the rows that
-            # stay, unless enough of its rows froze again since G was made (solid, not
-            # steady: their pairs are evaluated every step) that G is worth making anew
-            refrozen = int((solid & ~self.steady).index_select(0, self.rows).sum())
-            reuse = refrozen <= self.refreeze_limit * self.rows.numel()
-        if new_table and not reuse:  # G anew at this neighbour build's positions
-            self.steady, self.x_op, self.provisional = solid, x_ref, False
-        elif (self.steady is None or self.steady.shape[0] != state.n or self.x_op is None
-              or self.x_op.shape[0] != state.n):
-            # arrays not carried (a checkpoint of an older version): the solid that has not
-            # moved since the last build, until G is made anew at the next build
-            self.steady, self.x_op = solid & (state.x == x_ref).all(1), x_ref
-            self.provisional = True
-        else:  # a phase change, or G kept: melt leaves it, what froze joins only when G is made anew
-            self.steady = self.steady & solid
-        if not reuse:
-            op = self.op = owned_operator(self, table, state)
-        elif not keep:
-            op = self.op = op.follow(self.rows, lambda at: table.gather(self.rows[at], within=True), self.x_op, self.steady, state.body)
+        op = select_operator(self, table, state, x_ref, new_table)
         op.select(table, self.steady, state.body, work)
         self.rows_w = torch.nonzero(wall if work is None else wall & work).squeeze(1)
         own = getattr(self, "owned", None)  # (ghosts off the rows: their owners count them)
@@ -452,8 +423,10 @@ class Conduction:
 
     def forget_geometry(self):
         """Neighbours change (particles added or removed): zeta and the area are evaluated
-        afresh for every row at the next evaluation."""
+        afresh for every row at the next evaluation; the conduction operator is made anew
+        (its entries name particles by row)."""
         self.zeta_ok = self.area_ok = None
+        self.op = None
 
     def _mark_rigid(self, state: ParticleState, table, work=None):
         """Per particle: solid, not next to melt, and so are all its neighbours, of its body.
@@ -636,21 +609,73 @@ class Conduction:
         return r if not self.rows_w.numel() else torch.minimum(r, state.rho.index_select(0, self.rows_w).min())
 
 
-def owned_operator(th, table, state: ParticleState) -> ConductionOperator:
-    """A new conduction operator on the rows of ``th`` (:class:`Conduction`), or in a
-    decomposed run on the owned ones among them (``op.at``: their places in the rows). No
-    owned particle's rate in a step reads a ghost's conduction: a ghost's temperature and
-    rate are its owner's, refreshed at every step's end, and the ghost rows keep only the
-    per-row work (the extrapolated temperatures the owned rows' sums read)."""
-    rows = th.rows
+def operator_rows(th) -> torch.Tensor:
+    """The conduction operator's rows: those of ``th`` (:class:`Conduction`), or in a
+    decomposed run the owned ones among them."""
     own = getattr(th, "owned", None)
-    if own is not None:
-        rows = rows.index_select(0, torch.nonzero(own.index_select(0, th.rows)).squeeze(1))
+    if own is None:
+        return th.rows
+    return th.rows.index_select(0, torch.nonzero(own.index_select(0, th.rows)).squeeze(1))
+
+
+def owned_operator(th, table, state: ParticleState) -> ConductionOperator:
+    """A new conduction operator on :func:`operator_rows` (``op.at``: their places in the
+    rows of ``th``, in a decomposed run). No owned particle's rate in a step reads a ghost's
+    conduction: a ghost's temperature and rate are its owner's, refreshed at every step's
+    end, and the ghost rows keep only the per-row work (the extrapolated temperatures the
+    owned rows' sums read)."""
+    rows = operator_rows(th)
     op = ConductionOperator(rows, *table.gather(rows, within=True), th.x_op, th.steady, state.body,
                             th.kernel, th.h, th.domain)
-    if own is not None:
-        op.at = torch.searchsorted(th.rows, rows)
+    return placed(th, op)
+
+
+def placed(th, op: ConductionOperator) -> ConductionOperator:
+    if getattr(th, "owned", None) is not None:
+        op.at = torch.searchsorted(th.rows, op.rows)
     return op
+
+
+def select_operator(th, table, state: ParticleState, x_ref: torch.Tensor, new_table: bool) -> ConductionOperator:
+    """The conduction operator of a pair selection of ``th`` (:class:`Conduction`), and its
+    steady set. Kept while the rows and the particle set stay (the particle set changing
+    drops it: ``th.op = None``); following a new row set (the active set moved), carrying
+    the rows that stay, unless enough of its rows froze again since it was made (solid, not
+    steady: their pairs are evaluated every step) that it is worth making anew. A decomposed
+    run decides that on the count over every process (the operators of all processes are
+    then the single-process one's rows, split), and its ghosts' phases and steady flags are
+    their owners' at a selection (refreshed before it)."""
+    solid = state.phase == Phase.SOLID
+    op = getattr(th, "op", None)
+    n = state.n
+    reuse = (op is not None and th.steady is not None and th.steady.shape[0] == n and th.x_op is not None
+             and th.x_op.shape[0] == n and op.row_of.shape[0] == n and not th.provisional)
+    rows = operator_rows(th)
+    keep = reuse and op.same_rows(rows, n)
+    comm = getattr(th, "comm", None)
+    if new_table and comm is not None and comm.size > 1:  # every process decides alike (a collective)
+        refrozen = float((solid & ~th.steady).index_select(0, rows).sum()) if reuse and not keep else 0.0
+        refrozen, total, unfit = comm.sum([refrozen, float(rows.numel()), float(not reuse)])
+        reuse = unfit == 0 and refrozen <= th.refreeze_limit * total
+        keep = reuse and keep
+    elif reuse and not keep and new_table:
+        refrozen = int((solid & ~th.steady).index_select(0, rows).sum())
+        reuse = refrozen <= th.refreeze_limit * rows.numel()
+    if new_table and not reuse:  # G anew at this neighbour build's positions
+        th.steady, th.x_op, th.provisional = solid, x_ref, False
+    elif th.steady is None or th.steady.shape[0] != n or th.x_op is None or th.x_op.shape[0] != n:
+        # arrays not carried (a checkpoint of an older version): the solid that has not
+        # moved since the last build, until G is made anew at the next build
+        th.steady, th.x_op = solid & (state.x == x_ref).all(1), x_ref
+        th.provisional = True
+    else:  # a phase change, or G kept: melt leaves it, what froze joins only when G is made anew
+        th.steady = th.steady & solid
+    if not reuse:
+        th.op = owned_operator(th, table, state)
+    elif not keep:
+        th.op = placed(th, op.follow(rows, lambda at: table.gather(rows[at], within=True), th.x_op, th.steady,
+                                     state.body))
+    return th.op
 
 
 def rows_and_table(th, sub: torch.Tensor | None = None):
