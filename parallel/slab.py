@@ -442,10 +442,10 @@ def _place_new(comm, sim, k):
     return perm
 
 
-def make_comm(cfg: dict, comm=None) -> SlabComm:
-    """A SlabComm for a validated case: the halo spans the neighbour-dependent stages of one
-    step (3 search radii; 5 with free-surface forces, 7 with a contact angle) plus the Verlet
-    skin."""
+def halo_parts(cfg: dict) -> dict:
+    """The halo of a validated case: the search radius, the skin, the neighbour-dependent
+    stages of one step (3 search radii; 5 with free-surface forces, 7 with a contact angle)
+    and the slack for the motion between migrations; ``halo`` their total (m)."""
     from torchsph.kernels import make_kernel
 
     nm = cfg["numerics"]
@@ -461,6 +461,14 @@ def make_comm(cfg: dict, comm=None) -> SlabComm:
         stages = 5
         if cfg["surface"].get("contact_angle_deg") is not None and cfg["surface"].get("wetting", True):
             stages = 7  # the contact line reads the curvature beside it, and spreads its force
-    return SlabComm(kernel.radius(h) + skin, skin, stages=stages, comm=comm,
-                    rebalance_every=nm.get("rebalance_every", 0),
-                    slack_skins=nm.get("migration_slack_over_skin", 4.0))
+    slack = nm.get("migration_slack_over_skin", 4.0)
+    search = kernel.radius(h) + skin
+    return {"search": search, "skin": skin, "stages": stages, "slack_skins": slack,
+            "halo": stages * search + skin * (1.0 + slack)}
+
+
+def make_comm(cfg: dict, comm=None) -> SlabComm:
+    """A SlabComm for a validated case (:func:`halo_parts`)."""
+    hp = halo_parts(cfg)
+    return SlabComm(hp["search"], hp["skin"], stages=hp["stages"], comm=comm,
+                    rebalance_every=cfg["numerics"].get("rebalance_every", 0), slack_skins=hp["slack_skins"])

@@ -200,3 +200,20 @@ def test_particles_leaving_the_scene_go_on_every_rank(tmp_path):
         for k in ("x", "v", "T"):
             ref = getattr(s, k)[o].numpy()
             assert rel(g[f"state_{k}"], ref) < 1e-10, (n, k, rel(g[f"state_{k}"], ref))
+
+
+def test_the_slab_bound_of_a_uniform_bar():
+    """scripts/tools/slab_bound.py: on a uniform bar of length L the best cut is the middle,
+    each rank computing L/2 + halo, so 2 ranks gain at most L / (L/2 + halo); idle particles
+    (weight 0) change nothing."""
+    sys.path.insert(0, str(ROOT / "scripts" / "tools"))
+    from slab_bound import best_cut
+
+    x = np.linspace(0.0, 10.0, 10001)
+    w = np.ones_like(x)
+    for halo in (0.5, 2.0):
+        b, c, lo, hi = best_cut(x, w, halo, cuts=2001)
+        assert c == pytest.approx(5.0, abs=5e-3) and b == pytest.approx(10.0 / (5.0 + halo), rel=1e-3)
+    idle = np.concatenate([x, np.linspace(-30.0, 0.0, 5000)])
+    b2, *_ = best_cut(idle, np.concatenate([w, np.zeros(5000)]), 2.0, cuts=2001)
+    assert b2 == pytest.approx(10.0 / 7.0, rel=1e-3)
