@@ -92,3 +92,45 @@ def test_a_force_term_drives_a_channel_like_the_fluids_own_body_force(monkeypatc
     assert [type(t).__name__ for t in sim.force_terms] == ["Push"] and sim.t == ref.t
     scale = float(ref.state.v.abs().max())
     assert scale > 0 and float((sim.state.v - ref.state.v).abs().max()) < 1e-12 * scale
+
+
+def test_solid_contact_keeps_melt_out_of_the_solids_spacing():
+    """[solid_contact] (torchsph/terms/contact.py) on the small deposition scene, 300 steps
+    with melt beside the substrate and the wire: without it the melt creeps into the solid's
+    lattice (its nearest solid particle comes to < 0.85 dx), with it no melt particle comes
+    within 0.95 dx of solid at any sampled step; it acts only closer than r0 = dx (a melt
+    particle at a lattice spacing feels nothing) and brings its time-step limit only while
+    melt is near solid."""
+    from test_deposition import small
+    from torchsph.terms.contact import SolidContact
+
+    base = ("scene.source_power_W=300.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=3.0e-3")
+    closest = {}
+    for on in (False, True):
+        cfg = small(*base, *(["solid_contact.stiffness=0.25"] if on else []))
+        dx = cfg["scene"]["dx_m"]
+        _, sim = make_simulation(cfg)
+        term = [t for t in sim.terms if isinstance(t, SolidContact)]
+        assert bool(term) == on
+        if on:
+            assert term[0].limits(sim) == {} and sim.n_fluid == 0  # no melt yet: no spring, no limit
+        seen = []
+        for _ in range(30):
+            run_steps(sim, steps=10)
+            s = sim.state
+            fl = s.phase == 0
+            if bool(fl.any()):
+                seen.append(float(torch.cdist(s.x[fl], s.x[~fl]).min()) / dx)
+        assert len(seen) >= 10, "the scene must melt"
+        closest[on] = min(seen)
+        if on:
+            lim = term[0].limits(sim)["solid_contact"]
+            assert lim == pytest.approx(0.25 * dx / (0.25 * 2 * cfg["fluid"]["c0_m_s"] ** 2) ** 0.5)
+            # at exactly r0 the repulsion is zero
+            x = torch.zeros(2, 3, dtype=torch.float64)
+            x[1, 0] = dx
+            term[0].pi, term[0].pj = torch.tensor([0]), torch.tensor([1])
+            sim.state.x, keep = x, sim.state.x
+            assert float(term[0].acceleration(sim, None)[1].abs().max()) == 0.0
+            sim.state.x = keep
+    assert closest[False] < 0.85 and closest[True] >= 0.95, closest
