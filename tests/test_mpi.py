@@ -36,6 +36,10 @@ DEPOSITION = (ROOT / "cases" / "perpendicular_350W",
               ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[3.0e-3, 3.0e-3, 1.0e-3]", "scene.wire_offset_m=1.5e-3",
                "scene.wire_length_m=1.0e-3", "scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1"], 300)
 
+# the same with [solid_contact]: melt repelled from solid across the slab boundary (a rank may own
+# no melt: its contact pairs are empty)
+CONTACT = (DEPOSITION[0], DEPOSITION[1] + ["solid_contact.stiffness=0.25"], 300)
+
 # the wire stalls on the substrate (no sources: it arrives unmelted and rests there); the
 # stall is decided on every rank together
 STALL = (ROOT / "cases" / "perpendicular_350W",
@@ -62,17 +66,19 @@ def rel(a, b):
     return float(np.abs(a - b).max()) / scale
 
 
-@pytest.mark.parametrize("which", ["fluid", "thermal", "surface", "wetting", "deposition", "stall"])
+@pytest.mark.parametrize("which", ["fluid", "thermal", "surface", "wetting", "deposition", "contact", "stall"])
 def test_decomposed_run_equals_single_process(tmp_path, which):
     """After K steps on 2 and 3 ranks the state gathered by id equals the single-process run to
     1e-10 relative (float64); particle count and total mass are exactly conserved. On 2 ranks
     a rebuild migrates only when some particle has moved half the halo's slack (the default);
     on 3 every rebuild migrates (no slack)."""
     case, ov, K = {"fluid": FLUID, "thermal": THERMAL, "surface": SURFACE, "wetting": WETTING, "deposition": DEPOSITION,
-                   "stall": STALL}[which]
+                   "contact": CONTACT, "stall": STALL}[which]
     ref, sim = serial(case, ov, K)
     if which == "stall":
         assert sim.feeder.stalled and sim.feeder.stall_s > 0
+    if which == "contact":  # melt is near solid: the repulsion acts
+        assert sum(t.pi.numel() for t in sim.terms) > 0
     if which == "deposition":  # what the case must exercise
         assert sim.feeder.n_fed >= 2 and (ref["phase"] == 0).sum() > 0 and sim.active_set is not None
         assert 0 < float(sim.thermal.lit.sum())

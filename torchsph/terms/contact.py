@@ -65,8 +65,8 @@ class SolidContact(Term):
         nb, mk = sim.nl.table.gather(rows, within=True)
         x_ref = sim.nl.x_ref if sim.nl.x_ref is not None and sim.nl.x_ref.shape == s.x.shape else s.x
         cand = mk & (s.phase.index_select(0, nb.reshape(-1)).view_as(nb) != Phase.FLUID)
-        d = sim.domain.minimum_image(x_ref.index_select(0, rows).unsqueeze(1) - x_ref.index_select(0, nb.reshape(-1)).view(
-            *nb.shape, -1))
+        d = sim.domain.minimum_image(x_ref.index_select(0, rows).unsqueeze(1)
+                                     - x_ref.index_select(0, nb.reshape(-1)).view(*nb.shape, s.dim))
         cand = cand & (dot(d, d) < (self.r0 + sim.nl.skin) ** 2)
         at = torch.nonzero(cand.reshape(-1)).squeeze(1)
         k = nb.shape[1]
