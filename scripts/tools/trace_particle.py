@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from torchsph.fluid import dot  # noqa: E402
+from torchsph.fluid import continuity_pairs, pair_geometry  # noqa: E402
 from torchsph.limits import SimulationError  # noqa: E402
 from torchsph.runner import run_steps, simulation_from_run  # noqa: E402
 from torchsph.state import Phase  # noqa: E402
@@ -39,8 +39,13 @@ def report(sim, pid: int) -> str | None:
     dist = d.norm(dim=1)
     near = (dist < m.kernel.radius(m.h)) & (dist > 0)
     sol, fl = near & (s.phase == Phase.SOLID), near & (s.phase == Phase.FLUID)
-    dWr = m.kernel.dwdr(dist, m.h) / dist.clamp_min(1e-12 * m.h)
-    cont = s.m * dot(s.v[r] - s.v, -d) * dWr  # m_j u_ij . grad_i W_ij (grad_i W = dW/dr (x_i - x_j) / r)
+
+    def continuity(sel):  # the model's own sum (3.7) over the neighbours ``sel`` (no diffusion)
+        rows, nb = torch.tensor([r]), torch.nonzero(sel).squeeze(1).unsqueeze(0)
+        dx, rr = pair_geometry(s.x, rows, nb, sim.domain, m.h)
+        dWr = m.kernel.dwdr(rr, m.h) / rr
+        return float(continuity_pairs(s.v, s.m, s.rho, rows, nb, dx, dWr, None, 0.0, 0.0, None, m.h, m.kernel,
+                                      1.0, 0.0)[0][0])
     saved = s.clone()
     try:
         _, parts = sim.accelerations(s.v, terms=True)
@@ -51,8 +56,8 @@ def report(sim, pid: int) -> str | None:
     return (f"t {sim.t:.6f} s | x mm {[round(v * 1e3, 3) for v in s.x[r].tolist()]} v m/s "
             f"{[round(v, 3) for v in s.v[r].tolist()]} rho {float(s.rho[r]):.0f} p {float(s.p[r]):.0f} "
             f"T {float(s.T[r]):.0f} phase {int(s.phase[r])} | neighbours: fluid {int(fl.sum())}, solid "
-            f"{int(sol.sum())} ({below} below, {above} above) | drho/dt from fluid {float(cont[fl].sum()):.3g}, "
-            f"from solid {float(cont[sol].sum()):.3g} | a m/s^2: {terms}")
+            f"{int(sol.sum())} ({below} below, {above} above) | drho/dt from fluid {continuity(fl):.3g}, "
+            f"from solid {continuity(sol):.3g} | a m/s^2: {terms}")
 
 
 def main():
