@@ -625,12 +625,13 @@ def owned_operator(th, table, state: ParticleState) -> ConductionOperator:
     end, and the ghost rows keep only the per-row work (the extrapolated temperatures the
     owned rows' sums read)."""
     rows = operator_rows(th)
-    op = ConductionOperator(rows, *table.gather(rows, within=True), th.x_op, th.steady, state.body,
-                            th.kernel, th.h, th.domain)
-    return placed(th, op)
+    return placed(th, ConductionOperator(rows, *table.gather(rows, within=True), th.x_op, th.steady, state.body,
+                                         th.kernel, th.h, th.domain))
 
 
 def placed(th, op: ConductionOperator) -> ConductionOperator:
+    """``op`` with ``op.at``, its rows' places among the conducting rows of ``th`` (a
+    decomposed run's: the operator holds the owned ones only)."""
     if getattr(th, "owned", None) is not None:
         op.at = torch.searchsorted(th.rows, op.rows)
     return op
@@ -673,9 +674,10 @@ def select_operator(th, table, state: ParticleState, x_ref: torch.Tensor, new_ta
     if not reuse:
         th.op = owned_operator(th, table, state)
     elif not keep:
-        th.op = placed(th, op.follow(rows, lambda at: table.gather(rows[at], within=True), th.x_op, th.steady,
-                                     state.body))
-    return th.op
+        th.op = op.follow(rows, lambda at: table.gather(rows[at], within=True), th.x_op, th.steady, state.body)
+    # (also where it is kept: the operator's rows are the same, but the ghosts among the
+    # conducting rows, and so the owned rows' places there, may have changed)
+    return placed(th, th.op)
 
 
 def rows_and_table(th, sub: torch.Tensor | None = None):
