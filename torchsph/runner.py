@@ -13,6 +13,7 @@ from . import io as sio
 from .fluid import FluidParams, WeaklyCompressibleFluid
 from .free_surface import ColourGradient
 from .kernels import make_kernel
+from .memory import keep_freed_blocks
 from .scenes import SCENES, Scene, build_scene, case_beams
 from .beam import Beam
 from .thermal import Conduction, SurfaceLosses, ThermalParams
@@ -33,6 +34,7 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
     study may pass the ``scene`` already built (and adjusted). ``comm``: a domain
     decomposition (``parallel.slab.SlabComm``); the scene is then built whole on every
     process and cut to this process's slab and halo."""
+    keep_freed_blocks()
     run, nm, fl = cfg["run"], cfg["numerics"], cfg["fluid"]
     dtype = DTYPES[run["dtype"]] if dtype is None else dtype
     device = run["device"] if device is None else device
