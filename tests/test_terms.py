@@ -134,3 +134,48 @@ def test_solid_contact_keeps_melt_out_of_the_solids_spacing():
             assert float(term[0].acceleration(sim, None)[1].abs().max()) == 0.0
             sim.state.x = keep
     assert closest[False] < 0.85 and closest[True] >= 0.95, closest
+
+
+def test_solid_contact_against_approach_only_stops_without_rebound():
+    """[solid_contact] with approach_over_c0 > 0: the force acts only against a pair's
+    closing speed w, scaled by min(1, w / u_s). A melt particle at rest inside the solid's
+    spacing (one that has just melted there) is not pushed: the spring alone pushed such a
+    particle at up to K/r0 and blew up the 0.35 mm perpendicular run (docs/RESOLUTION.md).
+    A particle fired at a fixed solid particle is stopped short of it and stays (no
+    rebound), where the spring alone sends it back at its approach speed."""
+    from types import SimpleNamespace
+    from torchsph.terms.contact import SolidContact
+
+    K, r0, u_s = 100.0, 1.0e-4, 0.2
+    dom = SimpleNamespace(minimum_image=lambda d: d)
+
+    def accel(term, gap, u):
+        x = torch.tensor([[gap, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+        v = torch.tensor([[u, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+        term.pi, term.pj = torch.tensor([0]), torch.tensor([1])
+        return float(term.acceleration(SimpleNamespace(state=SimpleNamespace(x=x), domain=dom), v)[1][0, 0])
+
+    damped, spring = SolidContact(K, r0, u_s), SolidContact(K, r0)
+    full = K / r0 * 0.25  # K (1 - r/r0)^2 / r0 at r = r0 / 2
+    assert accel(spring, 0.5 * r0, 0.0) == pytest.approx(full)
+    assert accel(damped, 0.5 * r0, 0.0) == 0.0  # at rest: nothing
+    assert accel(damped, 0.5 * r0, 0.1) == 0.0  # moving apart: nothing
+    assert accel(damped, 0.5 * r0, -2 * u_s) == pytest.approx(full)  # closing faster than u_s: the spring's
+    assert accel(damped, 0.5 * r0, -0.5 * u_s) == pytest.approx(0.5 * full)
+
+    def fire(term, w0, dt=2e-8):  # a head-on approach at w0, integrated until it leaves or stops
+        gap, u, closest = r0, -w0, r0
+        for _ in range(20000):
+            u += dt * accel(term, gap, u)
+            gap += dt * u
+            closest = min(closest, gap)
+            if gap >= r0 or abs(u) < 1e-4 * w0:
+                break
+        return closest, u
+
+    w0 = 0.5 * (2 * K / 3) ** 0.5  # half the speed that crosses the spring's barrier K/3
+    c_s, u_back = fire(spring, w0)
+    c_d, u_end = fire(damped, w0)
+    assert u_back == pytest.approx(w0, rel=1e-3)  # the spring: an elastic bounce
+    assert 0 < c_d < r0 and -1e-4 * w0 < u_end <= 0  # approach only: stopped, no rebound
+    assert c_d < c_s  # (softer than the spring: it stops the particle a little further in)
