@@ -23,9 +23,11 @@ approach_over_c0 c0. A melt particle that has just melted inside the solid's spa
 than r0 to its refrozen neighbours) is at rest there, and the spring alone pushed it out at
 up to K/r0 = 2.9e5 m/s^2 (the 0.35 mm ``perpendicular_350W`` run blew up so at 0.3156 s);
 with the factor it is not pushed, and melt moving into the solid is stopped without the
-spring's rebound (a dissipative contact, the damping half of Hunt & Crossley's). A step
-that turns a closing pair apart can at most reverse its closing speed (the force is then
-zero), so the factor adds no time-step limit of its own. Time-step limit: the pair
+spring's rebound (a dissipative contact, the damping half of Hunt & Crossley's). Below u_s
+it is a damper of rate K q^2 / (r0 u_s), q = 1 - r/r0, and adds no time-step limit: a step
+that turns a closing pair apart leaves it separating at most (K q^2 dt / (r0 u_s) - 1) w,
+after which the force is zero (none where u_s >= K dt / r0; at the acoustic dt and the
+default stiffness that is u_s >= ~0.09 c0, while 0.01 c0 was measured to pass). Time-step limit: the pair
 spring's frequency sqrt(2K)/r0 at r -> 0, dt <= 0.25 r0 / sqrt(2K).
 
 Pairs are found at each selection from the fluid's rows of the neighbour table, those closer
