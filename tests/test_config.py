@@ -63,6 +63,20 @@ def test_overrides_are_validated():
         load_case(CASES / "taylor_green_2d", ["nx=3"])
 
 
+def test_a_term_section_is_switched_off_by_enabled_false():
+    """A term a case names (here [solid_contact] added by --set) is built unless ``enabled =
+    false``; a non-boolean ``enabled`` is an error naming the section and the value."""
+    case = CASES / "perpendicular_350W"
+    _, on = load_case(case, ["solid_contact.stiffness=0.5"])
+    assert on["solid_contact"]["stiffness"] == 0.5
+    _, off = load_case(case, ["solid_contact.stiffness=0.5", "solid_contact.enabled=false"])
+    assert "solid_contact" not in off
+    _, still = load_case(case, ["solid_contact.enabled=true"])
+    assert "solid_contact" in still and "enabled" not in still["solid_contact"]
+    with pytest.raises(CaseError, match=r"\[solid_contact\] enabled = 3: expected true or false"):
+        load_case(case, ["solid_contact.enabled=3"])
+
+
 def test_cli_prints_one_line_and_exits_2(tmp_path):
     text, _ = BAD["negative_density"]
     (tmp_path / "case.toml").write_text(text)

@@ -330,7 +330,13 @@ def validate(raw: dict) -> dict:
     for sec, term in available_terms().items():  # the composable terms a case names
         if sec not in raw:
             continue
-        cfg[sec] = validate_section(sec, raw[sec], term.schema, dim)
+        body = dict(raw[sec])
+        on = body.pop("enabled", True)  # a case's term turned off without editing the file
+        if not isinstance(on, bool):
+            raise CaseError(f"[{sec}] enabled = {on!r}: expected true or false")
+        if not on:
+            continue
+        cfg[sec] = validate_section(sec, body, term.schema, dim)
         for need in term.needs:
             if need not in raw:
                 raise CaseError(f"[{sec}] needs a [{need}] section ({term.doc})")
