@@ -36,9 +36,10 @@ DEPOSITION = (ROOT / "cases" / "perpendicular_350W",
               ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[3.0e-3, 3.0e-3, 1.0e-3]", "scene.wire_offset_m=1.5e-3",
                "scene.wire_length_m=1.0e-3", "scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1"], 300)
 
-# the same with [solid_contact]: melt repelled from solid across the slab boundary (a rank may own
-# no melt: its contact pairs are empty)
-CONTACT = (DEPOSITION[0], DEPOSITION[1] + ["solid_contact.stiffness=0.25"], 300)
+# the case names [solid_contact] (melt repelled from solid across the slab boundary; a rank may own
+# no melt: its contact pairs are empty), against approach only; here the spring alone, whose force
+# at rest reads no velocity
+CONTACT = (DEPOSITION[0], DEPOSITION[1] + ["solid_contact.approach_over_c0=0.0"], 300)
 
 # the wire stalls on the substrate (no sources: it arrives unmelted and rests there); the
 # stall is decided on every rank together

@@ -52,9 +52,10 @@ class SolidContact(Term):
     schema = {
         "stiffness": Key("float", default=0.25, gt=0, le=4.0, doc="K / c0^2 of a = K (1 - r/r0)^2 / r0"),
         "range_over_dx": Key("float", default=1.0, gt=0, le=1.5, doc="r0 / dx: the repulsion acts closer than this"),
-        "approach_over_c0": Key("float", default=0.0, ge=0, le=1.0,
-                                doc="0: a spring; > 0: the force only against approach, scaled by "
-                                    "min(1, w / (this c0)), w the pair's closing speed"),
+        "approach_over_c0": Key("float", default=0.01, ge=0, le=1.0,
+                                doc="> 0: the force only against approach, scaled by min(1, w / (this c0)), "
+                                    "w the pair's closing speed; 0: a spring (pushes melt that melts "
+                                    "inside the solid's spacing out: blew up a 0.35 mm deposition run)"),
     }
     needs = ("fluid",)
     reads = ("x", "phase")
@@ -70,7 +71,7 @@ class SolidContact(Term):
     def from_case(cls, cfg: dict, ctx: TermContext) -> "SolidContact":
         sc = cfg["solid_contact"]
         c0 = cfg["fluid"]["c0_m_s"]
-        return cls(sc["stiffness"] * c0**2, sc["range_over_dx"] * ctx.dx, sc.get("approach_over_c0", 0.0) * c0)  # (absent in older runs)
+        return cls(sc["stiffness"] * c0**2, sc["range_over_dx"] * ctx.dx, sc.get("approach_over_c0", 0.0) * c0)  # (absent in older runs: the spring they ran with)
 
     def select(self, sim) -> None:
         s, fm = sim.state, sim.fluid  # (None while there is no melt)
