@@ -51,9 +51,11 @@ def env1():
 
 def same_model(tree: Path) -> list[str]:
     """--set arguments that put a tree on the reference's physics: a version with the wetting
-    model runs these comparisons without it (the thesis's c = 1 in melt and solid, as b14e316)."""
+    model runs these comparisons without it (the thesis's c = 1 in melt and solid, as b14e316),
+    and one whose case names [solid_contact] without that term (b14e316 has none)."""
     has = '"wetting": Key(' in (tree / "torchsph" / "config.py").read_text()
-    return ["--set", "surface.wetting=false"] if has else []
+    contact = "[solid_contact]" in (tree / "cases" / "perpendicular_350W" / "case.toml").read_text()
+    return (["--set", "surface.wetting=false"] if has else []) + (["--set", "solid_contact.enabled=false"] if contact else [])
 
 
 def preview_checkpoint(tree: Path, t: float) -> Path:

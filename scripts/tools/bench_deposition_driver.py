@@ -96,7 +96,10 @@ def main():
         (getattr(sim, "refresh_pairs", None) or getattr(sim, "_refresh_pairs"))(force=True)
     else:
         from torchsph.config import SURFACE  # the reference's physics: no wetting model (as b14e316)
-        _, cfg = load_case(a.tree / "cases" / "perpendicular_350W", ["surface.wetting=false"] if "wetting" in SURFACE else [])
+        case = a.tree / "cases" / "perpendicular_350W"
+        ov = (["surface.wetting=false"] if "wetting" in SURFACE else []) + (
+            ["solid_contact.enabled=false"] if "[solid_contact]" in (case / "case.toml").read_text() else [])
+        _, cfg = load_case(case, ov)
         _, sim = make_simulation(cfg)
     setup = time.perf_counter() - t0
     n0 = sim.state.n
