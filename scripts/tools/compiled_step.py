@@ -19,6 +19,8 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_deposition_driver import timed_steps  # noqa: E402
 from torchsph import step  # noqa: E402
 from torchsph.runner import run_steps, simulation_from_run  # noqa: E402
 
@@ -26,12 +28,7 @@ PARTS = ("first_half", "close_momentum", "close_energy")
 
 
 def timed(sim, n):
-    out = []
-    for _ in range(n):
-        b = sim.nl.n_builds
-        t = time.perf_counter()
-        run_steps(sim, steps=1)
-        out.append((time.perf_counter() - t, sim.nl.n_builds > b))
+    out = timed_steps(sim, run_steps, n)
     plain = [t for t, r in out if not r]
     reb = [t for t, r in out if r]
     return {"ms_per_step": 1e3 * sum(t for t, _ in out) / n,
