@@ -167,6 +167,33 @@ def test_section_picture_and_numbers(tmp_path):
     assert abs(nums["x0_m"] - 1.0e-3) <= DX / 2
 
 
+def test_pyvista_sections_show_the_fusion_zone(tmp_path):
+    """The PyVista picture of the section (Fig. 6.6), two panels: each panel returns the
+    numbers of :func:`post.section` for that column, and the fusion zone (peak T above T_L)
+    is drawn crimson: the panel with a fusion zone has crimson pixels, the one without has
+    none. Skips only where PyVista is missing or VTK cannot open a context."""
+    pv = pytest.importorskip("pyvista")
+    R, P = 0.5e-3, 0.3e-3
+    block = lattice((0, -1.5e-3, -1e-3), (2e-3, 1.5e-3, 0))
+    cand = lattice((0, -R, 0), (2e-3, R, R))
+    x = np.concatenate([block, cand[cand[:, 1] ** 2 + cand[:, 2] ** 2 < R * R]])
+    Tp = np.where(x[:, 1] ** 2 / R**2 + x[:, 2] ** 2 / P**2 < 1, 2000.0, 500.0)
+    cfg = cfg_of([2e-3, 3e-3, 1e-3])
+    fused, cold = snap_of(x, Tp=Tp), snap_of(x, Tp=np.full(x.shape[0], 500.0))
+    try:
+        nums = post.render_sections([(fused, cfg, "fused"), (cold, cfg, "cold")], 1.0e-3, tmp_path / "s.png",
+                                    panel=(240, 160))
+    except Exception as e:  # noqa: BLE001 - VTK raises various errors without an OpenGL context
+        pytest.skip(f"VTK could not render off-screen here: {e}")
+    assert nums[0] == post.section(fused, cfg, 1.0e-3)
+    assert abs(nums[0]["width_m"] - 2 * R) <= DX and abs(nums[0]["penetration_m"] - P) <= DX
+    img = pv.read(str(tmp_path / "s.png"))
+    rgb = np.asarray(img.point_data[img.point_data.keys()[0]])[:, :3].astype(int).reshape(160, 480, 3)
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    crimson = (r > 100) & (r > 2.5 * g) & (r > 2 * b)  # shaded crimson; cividis has no red
+    assert crimson[:, :240].sum() > 500 and crimson[:, 240:].sum() == 0  # the colour bar's swatch is ~50
+
+
 def test_melt_pool_is_the_largest_connected_liquid():
     """A drop of liquid 2 mm above the pool is not part of it (counted as detached)."""
     a, b, c = 1.0e-3, 0.6e-3, 0.3e-3

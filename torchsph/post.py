@@ -492,6 +492,57 @@ def render(snap: dict, png: str | Path, cfg: dict | None = None, what: str = "te
     return True
 
 
+def render_sections(runs: list[tuple[dict, dict, str]], x0: float, png: str | Path, behind_m: float = 2.0e-3,
+                    half_width_m: float = 3.0e-3, depth_m: float = 2.0e-3, panel=(640, 420)) -> list[dict]:
+    """Off-screen PyVista picture of the transverse section at substrate-frame x0 (the thesis's
+    Fig. 6.6), one panel per (snapshot, case, title) in ``runs``: the deposit behind the cut
+    (substrate-frame x in [x0 - behind_m, x0]; the bead, the substrate to depth_m below its
+    top, |y| <= half_width_m) drawn as cubes of side dx, one per particle, seen from the
+    cut's side. Colour: peak temperature from the ambient up to the liquidus; what passed the
+    liquidus (the fusion zone: the bead and the melted substrate) is crimson. Each panel's
+    caption carries the section's width, height and penetration (:func:`section`), which
+    are returned."""
+    import pyvista as pv
+
+    pv.OFF_SCREEN = True
+    ncol = 2 if len(runs) > 1 else 1
+    nrow = (len(runs) + ncol - 1) // ncol
+    p = pv.Plotter(off_screen=True, shape=(nrow, ncol), window_size=[panel[0] * ncol, panel[1] * nrow],
+                   border=False)
+    out = []
+    for k, (snap, cfg, title) in enumerate(runs):
+        dx = cfg["scene"]["dx_m"]
+        TL = cfg["thermal"]["liquidus_K"]
+        nums = section(snap, cfg, x0)
+        out.append(nums)
+        xs = substrate_x(snap, cfg)
+        pos = snap["position"]
+        keep = ~((snap["body"] == WIRE) & (snap["phase"] == SOLID)) & ~detached(snap, dx)
+        keep &= (xs <= nums["x0_m"] + 0.5 * dx) & (xs >= nums["x0_m"] - behind_m)
+        keep &= (np.abs(pos[:, 1]) <= half_width_m) & (pos[:, 2] >= -depth_m)
+        pts = np.column_stack([xs[keep], pos[keep, 1], pos[keep, 2]]) * 1e3
+        cloud = pv.PolyData(pts)
+        cloud["peak temperature (K)"] = snap["peak_temperature"][keep]
+        cubes = cloud.glyph(geom=pv.Cube(x_length=dx * 1e3, y_length=dx * 1e3, z_length=dx * 1e3), scale=False,
+                            orient=False)
+        p.subplot(k // ncol, k % ncol)
+        ambient = float(cfg["thermal"].get("ambient_K", 300.0))
+        p.add_mesh(cubes, scalars="peak temperature (K)", cmap="cividis", clim=[ambient, TL], above_color="crimson",
+                   show_edges=False, scalar_bar_args=dict(title="peak T (K); crimson: above T_L", n_labels=4,
+                                                          fmt="%.0f", title_font_size=12, label_font_size=10,
+                                                          position_x=0.2, position_y=0.02, width=0.6, height=0.06))
+        p.add_text(f"{title}\nx0 = {nums['x0_m'] * 1e3:.1f} mm, t = {float(snap['time']):.2f} s: "
+                   f"W {nums['width_m'] * 1e3:.2f}, H {nums['height_m'] * 1e3:.2f}, "
+                   f"P {nums['penetration_m'] * 1e3:.2f} mm", font_size=9)
+        focus = pts.mean(0)  # seen from the cut's side, a little from above and aside; fitted to the panel
+        p.camera_position = [tuple(focus + np.array([9.0, 2.5, 2.6])), tuple(focus), (0, 0, 1)]
+        p.reset_camera()
+        p.camera.zoom(1.3)
+    p.screenshot(str(png))
+    p.close()
+    return out
+
+
 def timelapse(run_dir: str | Path, path: str | Path, what: str = "temperature", fps: int = 5):
     """GIF (or MP4, by the suffix) of renders of every snapshot, via imageio."""
     import tempfile

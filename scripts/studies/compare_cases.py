@@ -8,7 +8,8 @@ deposition cases: a matplotlib PNG and a markdown/CSV table.
 ``--time`` takes every run's snapshot nearest that time (default: each run's last), so runs
 of different length are compared at the same process time. ``--section-mm X0`` adds the
 transverse section at substrate-frame x0 of every case, side by side (OUT_sections.png), and
-its numbers to the table.
+its numbers to the table; ``--render`` draws the same sections with PyVista (OUT_sections3d.png:
+the deposit behind the cut as cubes, one per particle, the fusion zone in crimson).
 
 Per case: the bead averaged over its steady part (width, height above the original top,
 penetration, added area; NaN where the run is too short for a bead behind the wire) and the
@@ -109,6 +110,7 @@ def main():
     ap.add_argument("--start-skip-mm", type=float, default=2.0,
                     help="bead columns start this far behind the substrate-frame origin (default 2)")
     ap.add_argument("--section-mm", type=float, help="also the transverse section at this substrate-frame x0, mm")
+    ap.add_argument("--render", action="store_true", help="with --section-mm: the PyVista picture of the sections")
     ap.add_argument("--pool-margin-mm", type=float, default=2.5,
                     help="and end this far behind the wire's axis (default 2.5: past the pool)")
     a = ap.parse_args()
@@ -143,6 +145,12 @@ def main():
         fig.savefig(a.out.with_name(a.out.name + "_sections.png"))
         plt.close(fig)
     a.out.parent.mkdir(parents=True, exist_ok=True)
+    if a.render and x0 is not None:
+        shown = []
+        for r, row in zip(runs, rows):
+            cfg, snap = snapshot_at(r, a.time)
+            shown.append((snap, cfg, f"{row['case']} ({row['power_W']:.0f} W, {row['layout']}, dx {row['dx_mm']:.2f} mm)"))
+        post.render_sections(shown, x0, a.out.with_name(a.out.name + "_sections3d.png"))
     with open(a.out.with_suffix(".csv"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
