@@ -4,7 +4,8 @@ The search is fully vectorised: particles are binned into cells of edge >= radiu
 sorted by linear cell index with ``argsort``, and for each of the 3^d stencil
 offsets (a loop over at most 27 offsets, never over particles or cells) the
 candidate pairs of every particle are produced at once with ``searchsorted`` and
-``repeat_interleave``, then filtered by distance. Periodic axes use the minimum
+``repeat_interleave``, then filtered by distance; for a few rows (a partial rebuild's)
+the offsets are searched together, in one such pass (``PASS_ROWS``). Periodic axes use the minimum
 image convention; they must span at least two search radii so that a pair has one
 image at most within the radius.
 """
@@ -103,6 +104,68 @@ def _cell_grid(x: torch.Tensor, radius: float, domain: Domain, m: int = 1):
     return torch.stack(coords, dim=1), ncell, offsets
 
 
+# Rows x stencil passes searched at once by build_table: a group of passes holds at most this
+# many; more rows go one pass at a time. Measured on the CPU, grouping pays only where the
+# per-pass kernels' launches cost more than their work (a few thousand rows or fewer).
+PASS_ROWS = 1 << 13
+
+
+def _search_passes(off, reach, c, xcol, xscol, sorted_cid, order, me, base, all_rows: bool, outer, inner, mult,
+                   ncell, domain: Domain, r2max: float):
+    """One group of :func:`build_table`'s stencil passes for all its query rows at once: the
+    pairs (row, slot, j) found, each row's pairs after those already in it (``base``, which is
+    advanced), pass after pass, in cell order within a pass (the order of one pass at a time);
+    None where the group finds none. ``off``: the passes' outer offsets (P, outer axes);
+    ``reach``: their inner runs' cells on each side (P, 1)."""
+    dev = c.device
+    Q, P = c.shape[0], off.shape[0]
+    valid = torch.ones((P, Q), dtype=torch.bool, device=dev)
+    ncid = torch.zeros((P, Q), dtype=torch.long, device=dev)
+    for k, a in enumerate(outer):
+        na = c[:, a].unsqueeze(0) + off[:, k:k + 1]
+        if domain.periodic[a]:
+            na = na.remainder(ncell[a])
+        else:
+            valid &= (na >= 0) & (na < ncell[a])
+        ncid += na * mult[a]
+    if inner is None:
+        start = torch.searchsorted(sorted_cid, ncid.view(-1), right=False)
+        end = torch.searchsorted(sorted_cid, ncid.view(-1), right=True)
+    else:  # the run of cells along the inner axis, clipped to the grid
+        ci = c[:, inner].unsqueeze(0)
+        start = torch.searchsorted(sorted_cid, (ncid + (ci - reach).clamp_(min=0)).view(-1), right=False)
+        end = torch.searchsorted(sorted_cid, (ncid + (ci + reach).clamp_(max=ncell[inner] - 1)).view(-1), right=True)
+    cnt = torch.where(valid.view(-1), end - start, torch.zeros_like(start))  # per (pass, row), pass-major
+    total = int(cnt.sum())
+    if total == 0:
+        return None
+    grp = torch.repeat_interleave(torch.arange(P * Q, device=dev), cnt, output_size=total)  # sorted
+    pos = torch.arange(total, device=dev) + (start - (torch.cumsum(cnt, 0) - cnt)).index_select(0, grp)
+    i = grp.remainder(Q) if P > 1 else grp
+    dim = len(xcol)
+    r2 = None
+    for a in range(dim):
+        da = xcol[a].index_select(0, i) - xscol[a].index_select(0, pos)
+        if domain.periodic[a]:
+            L = domain.length[a]
+            da -= L * torch.round(da * (1.0 / L))
+        r2 = da * da if r2 is None else r2.addcmul_(da, da)
+    keep = torch.nonzero(r2 < r2max).squeeze(1)
+    i, j = i.index_select(0, keep), order.index_select(0, pos.index_select(0, keep))
+    grp = grp.index_select(0, keep) if P > 1 else i
+    keep = torch.nonzero((i if all_rows else me.index_select(0, i)) != j).squeeze(1)
+    i, j = i.index_select(0, keep), j.index_select(0, keep)
+    grp = grp.index_select(0, keep) if P > 1 else i
+    kept = torch.bincount(grp, minlength=P * Q)  # per (pass, row)
+    per_pass = kept.view(P, Q)
+    # a pair's slot: its place among the kept, less its (pass, row)'s first place there, plus
+    # the row's slots filled before that pass
+    shift = (torch.cumsum(per_pass, 0) - per_pass + base.unsqueeze(0)).view(-1) - (torch.cumsum(kept, 0) - kept)
+    slot = torch.arange(grp.numel(), device=dev) + shift.index_select(0, grp)
+    base += per_pass.sum(0)
+    return i, slot, j
+
+
 def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius: int | None = None,
                 rows: torch.Tensor | None = None):
     """Neighbour table of every particle: all j != i with |x_i - x_j| < radius
@@ -155,8 +218,7 @@ def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius
     # as long as the rest of the radius needs (offsets are true offsets only where the axis
     # is not a short periodic one, which lists each of its cells once)
     trim = all(offsets[a] == list(range(-m, m + 1)) for a in outer)
-    base = torch.zeros(Q, dtype=torch.long, device=dev)  # neighbours found so far per row
-    found = []
+    passes = []  # (outer offsets, cells of the inner run on each side)
     for off in itertools.product(*(offsets[a] for a in outer)):
         reach = m
         if trim:
@@ -164,43 +226,19 @@ def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius
             if gap2 >= r2max:
                 continue
             reach = min(m, math.ceil(math.sqrt(r2max - gap2) / edge))
-        valid = torch.ones(Q, dtype=torch.bool, device=dev)
-        ncid = torch.zeros(Q, dtype=torch.long, device=dev)
-        for a, o in zip(outer, off):
-            na = c[:, a] + o
-            if domain.periodic[a]:
-                na = na.remainder(ncell[a])
-            else:
-                valid &= (na >= 0) & (na < ncell[a])
-            ncid += na * mult[a]
-        if inner is None:
-            start = torch.searchsorted(sorted_cid, ncid, right=False)
-            end = torch.searchsorted(sorted_cid, ncid, right=True)
-        else:  # the run of cells along the inner axis, clipped to the grid
-            ci = c[:, inner]
-            start = torch.searchsorted(sorted_cid, ncid + (ci - reach).clamp_(min=0), right=False)
-            end = torch.searchsorted(sorted_cid, ncid + (ci + reach).clamp_(max=ncell[inner] - 1), right=True)
-        cnt = torch.where(valid, end - start, torch.zeros_like(start))
-        total = int(cnt.sum())
-        if total == 0:
-            continue
-        i = torch.repeat_interleave(ar, cnt, output_size=total)  # sorted
-        pos = torch.arange(total, device=dev) + (start - (torch.cumsum(cnt, 0) - cnt)).index_select(0, i)
-        r2 = None
-        for a in range(dim):
-            da = xcol[a].index_select(0, i) - xscol[a].index_select(0, pos)
-            if domain.periodic[a]:
-                L = domain.length[a]
-                da -= L * torch.round(da * (1.0 / L))
-            r2 = da * da if r2 is None else r2.addcmul_(da, da)
-        keep = torch.nonzero(r2 < r2max).squeeze(1)
-        i, j = i.index_select(0, keep), order.index_select(0, pos.index_select(0, keep))
-        keep = torch.nonzero((i if rows is None else me.index_select(0, i)) != j).squeeze(1)
-        i, j = i.index_select(0, keep), j.index_select(0, keep)
-        kept = torch.bincount(i, minlength=Q)
-        rank = torch.arange(i.numel(), device=dev) + (base - (torch.cumsum(kept, 0) - kept)).index_select(0, i)
-        found.append((i, rank, j))
-        base += kept
+        passes.append((off, reach))
+    base = torch.zeros(Q, dtype=torch.long, device=dev)  # neighbours found so far per row
+    found = []
+    # the passes go in groups, one vectorised search per group: a partial rebuild's few rows
+    # take every pass at once (a few dozen kernels instead of a few hundred); a full build's
+    # take one or a few at a time (its candidates' memory bounded as a single pass bounds it)
+    group = max(1, PASS_ROWS // max(Q, 1))
+    off = torch.tensor([list(o) for o, _ in passes], dtype=torch.long).view(len(passes), len(outer)).to(dev)
+    reach = torch.tensor([r for _, r in passes], dtype=torch.long).unsqueeze(1).to(dev)
+    for g0 in range(0, len(passes), group):
+        found.append(_search_passes(off[g0:g0 + group], reach[g0:g0 + group], c, xcol, xscol, sorted_cid, order, me,
+                                    base, rows is None, outer, inner, mult, ncell, domain, r2max))
+    found = [f for f in found if f is not None]
     k = max(int(base.max()), 1)
     nb = me.unsqueeze(1).repeat(1, k)
     mask = torch.zeros((Q, k), dtype=torch.bool, device=dev)
