@@ -141,7 +141,8 @@ def _search_passes(off, reach, c, xcol, xscol, sorted_cid, order, me, base, all_
         return None
     grp = torch.repeat_interleave(torch.arange(P * Q, device=dev), cnt, output_size=total)  # sorted
     pos = torch.arange(total, device=dev) + (start - (torch.cumsum(cnt, 0) - cnt)).index_select(0, grp)
-    i = grp.remainder(Q) if P > 1 else grp
+    # each candidate's row (integer division by Q is the slow way on the CPU)
+    i = torch.repeat_interleave(torch.arange(Q, device=dev).repeat(P), cnt, output_size=total) if P > 1 else grp
     dim = len(xcol)
     r2 = None
     for a in range(dim):
