@@ -132,6 +132,8 @@ def test_with_wire_stall_the_feed_waits_on_solid_substrate_and_goes_on_once_the_
     assert bool((s.v[wire, 2] == 0).all())
     info = measure(s, scene.info, sim.t, 0.015, V, cfg["fluid"]["rho0_kg_m3"], 1753.15, dx)
     assert info["wire_stalled_s"] == feeder.stall_s and info["wire_stalls"] == 1
+    # the wait is booked to the rule that began it: unmelted wire on solid substrate
+    assert info["wire_stalled_by"] == {"unmelted": {"s": feeder.stall_s, "waits": 1}, "squeezed": {"s": 0.0, "waits": 0}}
     assert info["wire_fed_kg"] == pytest.approx(cfg["fluid"]["rho0_kg_m3"] * scene.info["wire_area"] * feeder.fed)
     run_steps(sim, steps=20)
     assert float(s.x[(s.body == WIRE) & (s.phase == Phase.SOLID), 2].min()) == tip  # still resting
@@ -443,3 +445,5 @@ def test_with_wire_stall_the_feed_also_waits_while_it_squeezes_melt():
             s.phase = torch.where(where, torch.full_like(s.phase, int(Phase.FLUID)), torch.full_like(s.phase, int(Phase.SOLID)))
             s.rho = torch.where(where, torch.full_like(s.rho, (1.0 + comp) * rho0), torch.full_like(s.rho, rho0))
             assert feeder.check_contact(sim) is waits, (stall, comp)
+            if waits:  # a wait would begin here, booked to the squeezed melt
+                assert feeder.stall_why == "squeezed"

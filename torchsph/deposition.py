@@ -98,6 +98,10 @@ class WireFeeder:
         self.fed = 0.0  # length of wire fed so far (the distance the solid wire has moved)
         self.stalled = False  # the wire rests on solid substrate; its feed waits
         self.stall_s, self.n_stalls = 0.0, 0  # time spent stalled, stalls begun
+        # the same by the rule that began each wait: unmelted wire on solid substrate, or melt
+        # squeezed between the solid tip and solid substrate (where both held, "unmelted")
+        self.stall_by = {"unmelted": [0.0, 0], "squeezed": [0.0, 0]}
+        self.stall_why = "unmelted"
 
     @property
     def area(self) -> float:
@@ -174,10 +178,13 @@ class WireFeeder:
             self.fed += self.speed * (t - sim.t)
         elif self.started:  # stalled (before the feed starts the wire waits anyway)
             self.stall_s += t - sim.t
+            self.stall_by[self.stall_why][0] += t - sim.t
         blocked = self.check_contact(sim, answers)
         if self.stall and blocked != self.stalled:  # stall on contact, go on once it has melted
             self.stalled = blocked
             self.n_stalls += int(blocked)
+            if blocked:
+                self.stall_by[self.stall_why][1] += 1
             if self.started:
                 self._set_wire_velocity(sim, 0.0 if blocked else self.speed)
         if not self.started and t >= self.start:  # the wire moves from the next step on
@@ -245,7 +252,10 @@ class WireFeeder:
         blocked = False
         if self.stall:  # every process takes part, touching or not
             unmelted = low & (s.T_peak <= (self.T_melt or math.inf)) if hit else None
-            blocked = sim.comm.any((hit and bool(unmelted.any())) or (some_dense and self.squeezed(s, dense)))
+            touch = hit and bool(unmelted.any())
+            blocked = sim.comm.any(touch or (some_dense and self.squeezed(s, dense)))
+            if blocked and not self.stalled:  # a wait begins: which rule (every process asks)
+                self.stall_why = "unmelted" if sim.comm.any(touch) else "squeezed"
             if hit:
                 low = low & ~unmelted
                 hit = bool(low.any())
@@ -310,7 +320,8 @@ class WireFeeder:
     def state_dict(self) -> dict:
         return {"n_fed": self.n_fed, "next_id": self.next_id, "started": self.started,
                 "welded_kg": self.welded_kg, "n_welded": self.n_welded, "fed": self.fed,
-                "stalled": self.stalled, "stall_s": self.stall_s, "n_stalls": self.n_stalls}
+                "stalled": self.stalled, "stall_s": self.stall_s, "n_stalls": self.n_stalls,
+                "stall_by": {k: list(v) for k, v in self.stall_by.items()}, "stall_why": self.stall_why}
 
     def load_state_dict(self, d: dict):
         self.n_fed, self.next_id = d["n_fed"], d["next_id"]
@@ -319,6 +330,9 @@ class WireFeeder:
         # older checkpoints: no stall, so the fed length followed the feed clock
         self.fed = d.get("fed", self.n_fed * self.dx)
         self.stalled, self.stall_s, self.n_stalls = d.get("stalled", False), d.get("stall_s", 0.0), d.get("n_stalls", 0)
+        # older checkpoints: the waits not told apart (counted as unmelted from here on)
+        self.stall_by = {k: list(v) for k, v in d.get("stall_by", {"unmelted": [0.0, 0], "squeezed": [0.0, 0]}).items()}
+        self.stall_why = d.get("stall_why", "unmelted")
 
 
 def source_beams(sc: dict) -> list[dict]:
@@ -469,5 +483,6 @@ def measure(state: ParticleState, info: dict, t: float, V_sub: float, V_wire: fl
             "welded_kg": feeder.welded_kg if welded_kg is None else welded_kg,
             "escaped_kg": (info["escape"].kg if "escape" in info else 0.0) if escaped_kg is None else escaped_kg,
             "wire_stalled_s": feeder.stall_s, "wire_stalls": feeder.n_stalls,
+            "wire_stalled_by": {k: {"s": v[0], "waits": v[1]} for k, v in feeder.stall_by.items()},
             "peak_temperature_K": float(state.T.max()), "melt_pool": pool,
             "n_liquid": int(hot.sum()), "n_particles": state.n}

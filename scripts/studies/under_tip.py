@@ -8,7 +8,8 @@ is squeezed between the rigid tip and solid substrate. Per run, over its snapsho
 lowest particle above the substrate's original top (z = 0); the depth of the melt under the
 wire's footprint (|x|, |y| < wire radius: the lowest liquid there, below z = 0, plus half a
 spacing; 0 where none); the share of the substrate's top layer in that footprint that is
-solid (melt, of the wire or the substrate, is not); and, from the run's ``deposit.json``, the time the feed waited and its number of waits.
+solid (melt, of the wire or the substrate, is not); and, from the run's ``deposit.json``, the
+time the feed waited, its number of waits, and that time by the rule that began each wait.
 """
 from __future__ import annotations
 
@@ -44,12 +45,15 @@ def under_tip(run: Path, t_from: float = 0.1) -> dict:
         top = foot & (x[:, 2] > -dx) & (x[:, 2] <= 0.0)  # (melt of any origin: its body tag is 0)
         solid_top.append((top & (s["phase"] == SOLID)).sum() / max(top.sum(), 1))
     dep = json.loads((Path(run) / "deposit.json").read_text())[-1]
+    by = dep.get("wire_stalled_by")
     return {"run": str(run), "dx_mm": dx * 1e3, "snapshots": len(tips), "t_end_s": dep["t_s"],
             "tip_height_mean_mm": 1e3 * float(np.nanmean(tips)), "tip_height_min_mm": 1e3 * float(np.nanmin(tips)),
             "melt_depth_under_wire_mm": 1e3 * float(np.mean(depths)),
             "no_melt_under_wire_share": float(np.mean(np.asarray(depths) == 0.0)),
             "solid_top_under_wire_share": float(np.mean(solid_top)),
-            "feed_wait_s": dep["wire_stalled_s"], "waits": dep["wire_stalls"]}
+            "feed_wait_s": dep["wire_stalled_s"], "waits": dep["wire_stalls"],
+            # by the rule that began each wait (runs from stop 40 on; "-" before)
+            "wait_unmelted_s": by["unmelted"]["s"] if by else "-", "wait_squeezed_s": by["squeezed"]["s"] if by else "-"}
 
 
 def main():
