@@ -22,8 +22,10 @@ behind the wire (torchsph.post.bead_profile); the melt pool's length, width and 
 end; the peak temperature; the share of the fed wire that lies on the substrate (the
 deposit's mass over the mass fed); the time the feed waited on contact. Then each column's
 value extrapolated to dx -> 0 (Richardson from the three finest, with the observed order;
-torchsph.post.richardson) and each row's difference from it. Unfinished runs are listed
-with the time they reached and left out of the table. --plot draws the bead's error
+torchsph.post.richardson) and each row's difference from it; the two finest rows' difference
+per column, and the spacing at which rungs of their ratio would differ by less than 10 % (from
+the order and the limit). Unfinished runs are listed with the time they reached and left out
+of the table. --plot draws the bead's error
 against wall time (log-log). --json writes the rows.
 """
 from __future__ import annotations
@@ -201,7 +203,32 @@ def table(rows: list[dict]) -> str:
                 f0 = ext[k]["f0"]
                 cells.append("nan" if math.isnan(f0) or f0 == 0 else f"{r[k] / f0 - 1:+.1%}")
             lines.append(f"| {r['dx_mm']:.3f} | " + " | ".join(cells) + " |")
+        lines += ["", convergence(rows, ext, keys)]
     return "\n".join(lines)
+
+
+def convergence(rows: list[dict], ext: dict, keys: list[str], tol: float = 0.1) -> str:
+    """The two finest rows' difference per column (relative to the finer), and, from the
+    observed order p and limit f0, the spacing below which two rungs of the same ratio would
+    differ by less than ``tol``: with f(h) = f0 + C h^p (C from the finest row), |C| h^p (r^p - 1)
+    < tol |f0|, r = h2 / h1."""
+    fine = sorted(rows, key=lambda r: r["dx_mm"])[:2]
+    if len(fine) < 2:
+        return ""
+    (h1, r1), (h2, r2) = ((r["dx_mm"], r) for r in fine)
+    out = [f"Convergence: the two finest ({h2:g} and {h1:g} mm) differ by, and the spacing at which two rungs "
+           f"{h2 / h1:.3f} apart would differ by less than {tol:.0%} (from p and the limit):", "",
+           "| column | difference | spacing for < " + f"{tol:.0%}" + " mm |", "|---|---|---|"]
+    for k in keys:
+        f1, f2 = r1[k], r2[k]
+        diff = (f2 - f1) / f1 if f1 else float("nan")
+        x = ext[k]
+        need = "nan"
+        if not math.isnan(x["f0"]) and x["f0"] != 0 and f1 != x["f0"]:
+            C = (f1 - x["f0"]) / h1 ** x["p"]
+            need = f"{(tol * abs(x['f0']) / (abs(C) * ((h2 / h1) ** x['p'] - 1.0))) ** (1.0 / x['p']):.3g}"
+        out.append(f"| {k} | {diff:+.1%} | {need} |")
+    return "\n".join(out)
 
 
 def plot(rows: list[dict], png: Path, title: str):
