@@ -185,8 +185,8 @@ def test_pyvista_sections_show_the_fusion_zone(tmp_path):
                                     panel=(240, 160))
     except Exception as e:  # noqa: BLE001 - VTK raises various errors without an OpenGL context
         pytest.skip(f"VTK could not render off-screen here: {e}")
-    assert nums[0] == post.section(fused, cfg, 1.0e-3)
     assert abs(nums[0]["width_m"] - 2 * R) <= DX and abs(nums[0]["penetration_m"] - P) <= DX
+    assert abs(nums[1]["width_m"] - 2 * R) <= DX and nums[1]["penetration_m"] == 0.0  # nothing fused
     img = pv.read(str(tmp_path / "s.png"))
     rgb = np.asarray(img.point_data[img.point_data.keys()[0]])[:, :3].astype(int).reshape(160, 480, 3)
     r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]

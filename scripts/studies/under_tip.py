@@ -23,9 +23,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph import post  # noqa: E402
 from torchsph.io import read_snapshot  # noqa: E402
-from torchsph.post import SOLID, WIRE  # noqa: E402
-
-LIQUID = 0
+from torchsph.post import WIRE  # noqa: E402
+from torchsph.state import Phase  # noqa: E402
 
 
 def under_tip(run: Path, t_from: float = 0.1) -> dict:
@@ -37,13 +36,13 @@ def under_tip(run: Path, t_from: float = 0.1) -> dict:
             continue
         s = read_snapshot(path)
         x = s["position"]
-        wire = (s["body"] == WIRE) & (s["phase"] == SOLID)
+        wire = (s["body"] == WIRE) & (s["phase"] == Phase.SOLID)
         tips.append(x[wire, 2].min() if wire.any() else np.nan)
         foot = (np.abs(x[:, 0]) < rw) & (np.abs(x[:, 1]) < rw) & ~wire
-        low = foot & (s["phase"] == LIQUID) & (x[:, 2] < 0.0)
+        low = foot & (s["phase"] == Phase.FLUID) & (x[:, 2] < 0.0)
         depths.append(0.5 * dx - x[low, 2].min() if low.any() else 0.0)
         top = foot & (x[:, 2] > -dx) & (x[:, 2] <= 0.0)  # (melt of any origin: its body tag is 0)
-        solid_top.append((top & (s["phase"] == SOLID)).sum() / max(top.sum(), 1))
+        solid_top.append((top & (s["phase"] == Phase.SOLID)).sum() / max(top.sum(), 1))
     dep = json.loads((Path(run) / "deposit.json").read_text())[-1]
     by = dep.get("wire_stalled_by")
     return {"run": str(run), "dx_mm": dx * 1e3, "snapshots": len(tips), "t_end_s": dep["t_s"],
