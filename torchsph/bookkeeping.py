@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 
 from . import limits as step_limits, rates
+from .phases import undo_drag
 from .state import ParticleState, Phase
 from .thermal import stored_energy
 
@@ -122,7 +123,7 @@ class EndTemperatures:
         self.put(s, inv.T)
 
     def put(self, s, T):
-        s.T = s.T.index_copy(0, self.rows, T)  # (a new array: the step's T_prev keeps T_n)
+        s.T.index_copy_(0, self.rows, T)  # (in place: the step's own array since its first half; T_prev keeps T_n)
         s.T_peak.index_copy_(0, self.rows, torch.maximum(self.peak0, T))
 
 
@@ -135,18 +136,18 @@ def finish_step(sim, dt: float, ending: EndTemperatures | None = None) -> dict:
     temperatures are fixed or the phases change (the pairs re-selected), the drag is taken
     again, and the end is read again. Returns the read flags."""
     pc = sim.phase_change
-    v0 = sim.state.v  # (the drag makes a new array)
+    undo = None  # what puts the drag's velocities back
     check = ending is not None and ending.inv.bad is not None
     while True:
         extra = {"T_bad": ending.inv.bad.any()} if check else {}
         if pc is not None:
             melt, freeze, counts = pc.decide(sim)
-            pc.drag(sim, dt)
+            undo = pc.drag(sim, dt)
             extra |= {"melt": counts[0], "freeze": counts[1]}
         sim.comm.end_step(sim)
         f = step_limits.end_of_step(sim, **end_flags(sim), **extra)
         if check and sim.comm.any(bool(f["T_bad"])):  # every process goes round again together
-            sim.state.v = v0
+            undo_drag(sim, undo)
             ending.put(sim.state, ending.inv.fixed())
             check = False
             continue
@@ -155,7 +156,7 @@ def finish_step(sim, dt: float, ending: EndTemperatures | None = None) -> dict:
         n = [int(f["melt"]), int(f["freeze"])]
         total = sim.comm.sum(n)  # every process re-selects together
         if any(total):
-            sim.state.v = v0
+            undo_drag(sim, undo)
             pc.change(sim, melt, freeze, n[0], n[1], total)
             pc.drag(sim, dt)
             sim.comm.end_step(sim)

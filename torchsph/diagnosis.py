@@ -39,6 +39,8 @@ def check_finite(sim, v_eval, dt: float = 0.0, limit: str = "-", T_ok: float | N
     if not (bad_nan or m["compression"] > sim.max_compression):
         return
     s = sim.state
+    if callable(v_eval):  # made only now (the step keeps u~ on the fluid rows)
+        v_eval = v_eval()
     sim.state = s.clone()
     try:
         _, parts = sim.accelerations(v_eval, terms=True)

@@ -124,9 +124,10 @@ def wall_pairs(x, p, rho, v, rows, nb, mask, g, kernel: Kernel, h: float, domain
 
 def neighbour_average(x, v, rows, nb, weight, kernel: Kernel, h: float, domain: Domain):
     """Shepard average sum_j w_j v_j W_ij / sum_j w_j W_ij over the neighbours of ``rows``
-    (``weight`` selects which neighbours count), and the weight sum (0: none)."""
+    (``weight`` selects which neighbours count: per particle, or already per entry of ``nb``),
+    and the weight sum (0: none)."""
     dx, r = pair_geometry(x, rows, nb, domain, h)
-    Wk = kernel.w(r, h) * gather_nb(weight, nb)
+    Wk = kernel.w(r, h) * (weight if weight.dim() == 2 else gather_nb(weight, nb))
     sW = Wk.sum(1)
     avg = (gather_nb(v, nb) * Wk.unsqueeze(-1)).sum(1) / torch.where(sW > 0, sW, torch.ones_like(sW)).unsqueeze(-1)
     return avg, sW
@@ -258,16 +259,21 @@ class WeaklyCompressibleFluid:
         # (in place: no one keeps the pressures of an earlier evaluation; a diagnosis
         # evaluates on a clone of the state)
         p = state.p.index_copy_(0, self.rows_f, self.eos(state.rho.index_select(0, self.rows_f)))
-        u_visc = v_eval
-        if self.has_walls:
-            p, u_visc = self._wall_extrapolation(state, p, v_eval, g)
+        v_w = None
+        if self.has_walls:  # the walls' no-slip velocities, written into v_eval for the viscous
+            # term and put back after it (a whole copy of v per evaluation cost 2-3 ms of a
+            # full-scene step)
+            p, u_wall, v_w = self._wall_extrapolation(state, p, v_eval, g)
+            v_eval.index_copy_(0, self.rows_w, u_wall)
         state.p = p
         rows, n, k = self.rows_f, state.n, self.n_momentum
         nb_m = self.nb_f
         if k < rows.numel():  # decomposed: the ghost rows get only the pair geometry (continuity)
             rows, nb_m = rows[:k], nb_m[:k]
-        a, a_v, dx, dWr = self._fns["momentum"](x, u_visc, state.rho, p, state.m, rows, nb_m,
+        a, a_v, dx, dWr = self._fns["momentum"](x, v_eval, state.rho, p, state.m, rows, nb_m,
                                                 prm.eta, self.kernel, self.h, self.domain, terms)
+        if v_w is not None:
+            v_eval.index_copy_(0, self.rows_w, v_w)
         if k < self.rows_f.numel():
             dx_g, r_g = pair_geometry(x, self.rows_f[k:], self.nb_f[k:], self.domain, self.h)
             dx, dWr = torch.cat([dx, dx_g]), torch.cat([dWr, self.kernel.dwdr(r_g, self.h) / r_g])
@@ -313,7 +319,7 @@ class WeaklyCompressibleFluid:
         """Adami, Hu & Adams (2012): wall pressure from the fluid with the hydrostatic /
         acceleration correction (walls here are unaccelerated, a_w = 0), wall density from
         the inverse EOS (written to ``state.rho``), and the no-slip velocity
-        2 u_w - <u_f> for the viscous term."""
+        2 u_w - <u_f> for the viscous term on the wall rows (with the walls' own velocities)."""
         rows = self.rows_w
         if getattr(self, "_rest_pending", False):  # walls without fluid neighbours: background
             # pressure and its density, once per selection (the step leaves them so)
@@ -331,4 +337,4 @@ class WeaklyCompressibleFluid:
         state.rho = state.rho.index_copy(0, rows, self.inverse_eos(pw))
         v_w = v_eval.index_select(0, rows)
         u_wall = torch.where(has.unsqueeze(-1), 2.0 * v_w - sv / safe.unsqueeze(-1), v_w)
-        return p.index_copy_(0, rows, pw), v_eval.index_copy(0, rows, u_wall)
+        return p.index_copy_(0, rows, pw), u_wall, v_w

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .fluid import embed, neighbour_average
+from .fluid import embed, gather_nb, neighbour_average
 from .particles import fluid_set
 from .state import Phase
 
@@ -72,11 +72,12 @@ class PhaseChange:
                 sim.dvdt = sim.accelerations(s.v)
 
     def drag(self, sim, dt: float):
-        """The mushy-zone drag of the step (see the class)."""
+        """The mushy-zone drag of the step (see the class), in place on the fluid rows of the
+        state's v; returns what undoes it (:func:`undo_drag`), or None where nothing was done."""
         T_S, T_L, C = self.T_S, self.T_L, self.C
         s = sim.state
         if sim.fluid is None or C <= 0:
-            return
+            return None
         rows = sim.fluid_model.rows_f
         T = s.T.index_select(0, rows)
         phi = ((T - T_S) / (T_L - T_S)).clamp(0.0, 1.0)
@@ -84,7 +85,14 @@ class PhaseChange:
         v_s, near = solid_velocity(sim, rows)
         v = s.v.index_select(0, rows)
         decay = torch.where(near, torch.exp(-rate * dt), torch.ones_like(rate)).unsqueeze(-1)
-        s.v = s.v.index_copy(0, rows, v_s + (v - v_s) * decay)
+        s.v.index_copy_(0, rows, v_s + (v - v_s) * decay)
+        return rows, v
+
+
+def undo_drag(sim, undo):
+    """Put back the velocities a :meth:`PhaseChange.drag` changed (``undo``: its return)."""
+    if undo is not None:
+        sim.state.v.index_copy_(0, *undo)
 
 
 def resting_body(sim, rows: torch.Tensor) -> torch.Tensor:
@@ -110,7 +118,7 @@ def solid_velocity(sim, rows: torch.Tensor):
     velocity of the body a particle rests on) and whether any solid is near."""
     s = sim.state
     nb = sim.nl.table.gather(rows)[0]
-    solid = (s.phase == Phase.SOLID).to(s.dtype)
+    solid = (gather_nb(s.phase, nb) == Phase.SOLID).to(s.dtype)  # on the rows' neighbours only
     m = sim.fluid_model
     avg, sW = neighbour_average(s.x, s.v, rows, nb, solid, m.kernel, m.h, sim.domain)
     return avg, sW > 0

@@ -226,7 +226,10 @@ class Simulation:
         dt_t = scalar(dt)
         if self.fluid is not None and self.fluid.prm.gravity_ramp > 0:  # the accelerations at t + dt see g(t + dt)
             self.fluid.ramp_gravity(self.t + dt)
-        v_half, v_tilde, rows0, H_half_r, inv = step.first_half(self, dt_t)  # 1a-1e
+        half = step.first_half(self, dt_t)  # 1a-1e
+        v_half, v_tilde, rows0, H_half_r, inv = half[:5]
+        vh_f = half.vh_f  # (in place: the state's v holds u~; whole arrays only where particles change)
+        fr_half = self.fluid.fluid_rows if vh_f is not None else None
         T0 = self.T_prev
         H_half = None  # the whole array, made only where particles are added, removed or re-selected
 
@@ -236,6 +239,9 @@ class Simulation:
         if self.feeder is not None:  # new particles enter at t + dt
             new = self.feeder.new_particles(self, self.t + dt, answers)
             if new is not None and new.n:
+                if vh_f is not None:
+                    v_half, v_tilde = step.whole_velocities(self.state, half, fr_half)
+                    vh_f = None
                 new, perm = particles.add_particles(self, new)  # this process's share of them
                 if new.n:
                     v_half = torch.cat([v_half, new.v])
@@ -252,7 +258,11 @@ class Simulation:
             due, keep = particles.remove_escaped(self, self.t + dt, (lambda: whole_H_half() if H_half is None else H_half)
                                              if self.thermal is not None else None)
             if keep is not None:
-                v_half, v_tilde = v_half[keep], v_tilde[keep]
+                if vh_f is not None:  # (the state holds its kept rows already)
+                    v_half, v_tilde = step.whole_velocities(self.state, half, fr_half, keep)
+                    vh_f = None
+                else:
+                    v_half, v_tilde = v_half[keep], v_tilde[keep]
                 if self.thermal is not None:
                     H_half = (whole_H_half() if H_half is None else H_half)[keep]
                     new_row = torch.cumsum(keep.long(), 0) - 1
@@ -264,7 +274,10 @@ class Simulation:
         damping = None  # the settling drag (numerics.damping_time_s)
         if self.fluid is not None and self.t + dt < self.damping_time:
             damping = scalar(step_limits.damping_rate(self.damping_time, self.t + dt))
-        step.close_momentum(self, dt_t, damping, v_half, v_tilde)  # 2, 3c
+        step.close_momentum(self, dt_t, damping, v_half, v_tilde, vh_f)  # 2, 3c
+        if vh_f is not None:  # u~, for a diagnosis only: made if one is due
+            fr, vt_f = fr_half, half.vt_f
+            v_tilde = lambda: self.state.v.index_copy(0, fr, vt_f)  # noqa: E731
         ending = None
         if self.thermal is not None:  # the rows of the end's temperatures, and their h_{n+1/2}
             th = self.thermal

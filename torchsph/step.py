@@ -27,11 +27,13 @@ from .thermal import Inversion
 
 class Half(NamedTuple):
     """What :func:`first_half` hands to the rest of the step."""
-    v_half: torch.Tensor  # u_{n+1/2} (1a)
-    v_tilde: torch.Tensor  # u_n + dt du/dt, for the viscous term at the end of the step (1b)
+    v_half: torch.Tensor | None  # u_{n+1/2} (1a), whole; None: in place (vh_f; see first_half)
+    v_tilde: torch.Tensor | None  # u_n + dt du/dt (1b), for the viscous term; None: the state's v now
     rows0: torch.Tensor | None  # the integrated rows of the energy equation
     H_half_r: torch.Tensor | None  # h_{n+1/2} on rows0 (1d)
     inv: Inversion | None  # the extrapolated temperatures on rows0 (unchecked)
+    vh_f: torch.Tensor | None = None  # u_{n+1/2} on the fluid rows (the in-place step)
+    vt_f: torch.Tensor | None = None  # u_n + dt du/dt on the fluid rows (the in-place step)
 
 
 def first_half(sim, dt: torch.Tensor) -> Half:
@@ -46,15 +48,17 @@ def first_half(sim, dt: torch.Tensor) -> Half:
     # the few that move: each whole-array update is one fused pass.
     half = 0.5 * dt
     fr = sim.fluid.fluid_rows if sim.fluid is not None else None
+    vh_f = vt_f = None
     if fr is None:  # nothing accelerates
         v_half = v_tilde = s.v
-        x_new = torch.addcmul(s.x, s.v, dt)
-    else:
+    else:  # in place, on the fluid's rows of the state's own v: u_{n+1/2} now, u~ after the
+        # density (a whole copy of v per half cost 2-3 ms of a full-scene step)
         v_f, a_f = s.v.index_select(0, fr), sim.dvdt.index_select(0, fr)
         vh_f = torch.addcmul(v_f, a_f, half)  # 1a (v + dt/2 a)
-        v_half = s.v.index_copy(0, fr, vh_f)
-        v_tilde = s.v.index_copy(0, fr, torch.addcmul(v_f, a_f, dt))  # 1b
-        x_new = torch.addcmul(s.x, s.v, dt).index_copy_(0, fr, torch.addcmul(s.x.index_select(0, fr), vh_f, dt))
+        vt_f = torch.addcmul(v_f, a_f, dt)  # 1b
+        s.v.index_copy_(0, fr, vh_f)
+        v_half = s.v
+    x_new = torch.addcmul(s.x, v_half, dt)  # every particle, each with its u_{n+1/2}
     rows0 = H_half_r = inv = None
     if sim.thermal is not None:  # the energy equation in specific enthalpy h(T)
         th = sim.thermal
@@ -75,21 +79,46 @@ def first_half(sim, dt: torch.Tensor) -> Half:
             shift = sim.surface.project_shift(shift, sim.fluid.rows_f)
         x_new = x_new.index_add_(0, sim.fluid.rows_f, shift)
     s.x = sim.domain.wrap(x_new)
-    return Half(v_half, v_tilde, rows0, H_half_r, inv)
+    if fr is None:
+        return Half(v_half, v_tilde, rows0, H_half_r, inv)
+    s.v.index_copy_(0, fr, vt_f)  # the state's v holds u~ until the closing kick
+    return Half(None, None, rows0, H_half_r, inv, vh_f, vt_f)
 
 
-def close_momentum(sim, dt: torch.Tensor, damping: torch.Tensor | None, v_half, v_tilde):
+def whole_velocities(s, half: Half, fr, keep: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(u_{n+1/2}, u~) as whole arrays of their own, where the step adds or removes
+    particles between its halves (the state's v holds u~ on the fluid rows ``fr``; with
+    ``keep``, the mask of the rows the state kept of the step's, which it holds already)."""
+    if half.v_half is not None:
+        return (half.v_half, half.v_tilde) if keep is None else (half.v_half[keep], half.v_tilde[keep])
+    vh_f = half.vh_f
+    if keep is not None:  # the kept fluid rows, renumbered
+        kf = keep.index_select(0, fr)
+        fr = (torch.cumsum(keep.long(), 0) - 1).index_select(0, fr)[kf]
+        vh_f = vh_f[kf]
+    return s.v.index_copy(0, fr, vh_f), s.v.clone()
+
+
+def close_momentum(sim, dt: torch.Tensor, damping: torch.Tensor | None, v_half, v_tilde,
+                   vh_f: torch.Tensor | None = None):
     """2 and 3c at the end of the step: the accelerations with the extrapolated velocity
     (``damping``: the settling drag's rate then, a 0-d tensor, or None) and the closing half
-    kick (into ``v_half``, this step's own array)."""
+    kick. Either on whole arrays (``v_half``, this step's own, and ``v_tilde``) or in place
+    (``vh_f``: u_{n+1/2} on the fluid rows, the state's v holding u~)."""
     s = sim.state
     if sim.fluid is not None:
+        in_place = vh_f is not None
+        if in_place:
+            v_tilde = s.v
         sim.dvdt = sim.accelerations(v_tilde)  # 2
         if damping is not None:
             fm = sim.fluid_mask.unsqueeze(-1)
             sim.dvdt = sim.dvdt - damping * torch.where(fm, v_tilde, torch.zeros_like(v_tilde))
-        fr = sim.fluid.fluid_rows  # (v_half: this step's own copy, so written in place)
-        s.v = v_half.index_copy_(0, fr, torch.addcmul(v_half.index_select(0, fr), sim.dvdt.index_select(0, fr), 0.5 * dt))  # 3c
+        fr = sim.fluid.fluid_rows
+        if in_place:
+            s.v.index_copy_(0, fr, torch.addcmul(vh_f, sim.dvdt.index_select(0, fr), 0.5 * dt))  # 3c
+        else:  # (v_half: this step's own copy, so written in place)
+            s.v = v_half.index_copy_(0, fr, torch.addcmul(v_half.index_select(0, fr), sim.dvdt.index_select(0, fr), 0.5 * dt))  # 3c
     else:
         s.v = v_half  # nothing accelerates
     if sim.new_body_velocity:  # a body's velocity was changed during the step (a feed starts)

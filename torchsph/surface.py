@@ -90,8 +90,14 @@ def smoothed_pairs(x, f, w, m, rho, rows, nb, mask, kernel: Kernel, h: float, do
     """Kernel (Shepard) average of ``f`` over the neighbours with weight ``w``, self included
     (``mask`` marks the real neighbours of the padded table)."""
     dx, r = pair_geometry(x, rows, nb, domain, h)
-    Wk = kernel.w(r, h) * gather_nb(m / rho * w, nb) * mask
-    self_w = (m / rho * w).index_select(0, rows) * kernel.w(torch.zeros((), dtype=x.dtype), h)
+    if nb.numel() < m.shape[0]:  # few rows (a small pool in a large scene): V w on their entries only
+        Vw_nb = gather_nb(m, nb) / gather_nb(rho, nb) * gather_nb(w, nb)
+        Vw_r = m.index_select(0, rows) / rho.index_select(0, rows) * w.index_select(0, rows)
+    else:  # (the same values, per particle first)
+        Vw = m / rho * w
+        Vw_nb, Vw_r = gather_nb(Vw, nb), Vw.index_select(0, rows)
+    Wk = kernel.w(r, h) * Vw_nb * mask
+    self_w = Vw_r * kernel.w(torch.zeros((), dtype=x.dtype), h)
     num = (gather_nb(f, nb) * Wk.unsqueeze(-1)).sum(1) + f.index_select(0, rows) * self_w.unsqueeze(-1)
     return num / (Wk.sum(1) + self_w).clamp_min(1e-300).unsqueeze(-1)
 
