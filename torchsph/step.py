@@ -73,7 +73,8 @@ def first_half(sim, dt: torch.Tensor) -> Half:
     if sim.fluid is not None:
         sim.drhodt, shift = sim.fluid.continuity(  # at x_n, with u_{n+1/2}
             v_half, s.m, sim.dx if sim.fluid.prm.shifting > 0 else 0.0, rho=s.rho)
-        s.rho = s.rho + dt * sim.drhodt
+        fr_rho = sim.fluid.rows_f  # drho/dt is 0 off the fluid's rows: rho + dt drho/dt on those only
+        s.rho = s.rho.index_add(0, fr_rho, dt * sim.drhodt.index_select(0, fr_rho))
     if shift is not None:
         if sim.surface is not None:
             shift = sim.surface.project_shift(shift, sim.fluid.rows_f)

@@ -595,7 +595,10 @@ class Conduction:
     def limit(self, state: ParticleState):
         """Thermal time-step limit 0.125 rho c_p h^2 / k (3.17, fixed), a 0-d float64 tensor
         (inf without conduction)."""
-        kmax = self.k.max().double()
+        memo = self.__dict__.get("_kmax")  # once per conductivity array (a pass over every particle)
+        if memo is None or memo[0] is not self.k:
+            memo = self._kmax = (self.k, self.k.max().double())
+        kmax = memo[1]
         lim = 0.125 * self.rho_min(state).double() * self.prm.specific_heat * self.h**2 / kmax
         return torch.where(kmax > 0, lim, torch.full_like(lim, math.inf))
 
