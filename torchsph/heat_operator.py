@@ -56,6 +56,31 @@ def material_factor(k_i, k_j, z_i, z_j):
     return 4.0 * k_i * k_j / (k_i + k_j) * (2.0 / (z_i + z_j))
 
 
+def entry_material(k: torch.Tensor, zeta: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
+    """:func:`material_factor` of the entries (i, j). Where every particle conducts alike (one
+    material), its conductivity part is one number, made by the same operations: the same
+    values without the two gathers and three passes over the entries (a full build of the
+    full scene's operator, 3.9 M entries, spent 35-85 ms in them)."""
+    k1 = uniform_value(k)
+    z = 2.0 / (zeta.index_select(0, i) + zeta.index_select(0, j))
+    if k1 is None:
+        return 4.0 * k.index_select(0, i) * k.index_select(0, j) / (k.index_select(0, i) + k.index_select(0, j)) * z
+    return 4.0 * k1 * k1 / (k1 + k1) * z
+
+
+_uniform: tuple = (None, None)
+
+
+def uniform_value(k: torch.Tensor) -> torch.Tensor | None:
+    """The one value of ``k`` (a 0-d tensor) where all its entries are equal, else None; read
+    once per array (a host read, at a build)."""
+    global _uniform
+    if _uniform[0] is not k:
+        one = k.numel() > 0 and bool(k.min() == k.max())
+        _uniform = (k, k[0].clone() if one else None)
+    return _uniform[1]
+
+
 def rows_of(x: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
     """``x.index_select(0, i)`` for a 2-D ``x``, as a gather: 4x faster than index_select
     for a million rows of a large array on one CPU thread (measured), the same values."""
@@ -228,13 +253,11 @@ class ConductionOperator:
             redo = torch.nonzero(ch.index_select(0, i) | ch.index_select(0, j)).squeeze(1)
             ri, rj = i.index_select(0, redo), j.index_select(0, redo)
             live = self.steady.index_select(0, ri) & self.steady.index_select(0, rj)
-            gr = material_factor(k.index_select(0, ri), k.index_select(0, rj), zeta.index_select(0, ri),
-                                 zeta.index_select(0, rj)) * self.g_f.index_select(0, redo)
+            gr = entry_material(k, zeta, ri, rj) * self.g_f.index_select(0, redo)
             g = self.g.index_copy_(0, redo, torch.where(live, gr, torch.zeros_like(gr)))  # (G is made anew from it below)
         else:
             live = self.steady.index_select(0, i) & self.steady.index_select(0, j)
-            g = material_factor(k.index_select(0, i), k.index_select(0, j), zeta.index_select(0, i),
-                                zeta.index_select(0, j)) * self.g_f
+            g = entry_material(k, zeta, i, j) * self.g_f
             g = torch.where(live, g, torch.zeros_like(g))
         self.g = g
         self.built_from = (k, zeta, self.steady)
