@@ -11,23 +11,47 @@ from .state import ParticleState, Phase
 from .thermal import stored_energy
 
 
+def rigid_of(st: ParticleState) -> torch.Tensor:
+    """Each particle's rigid body (solid with a body > 0), -1 where it is not rigid."""
+    return torch.where((st.phase == Phase.SOLID) & (st.body > 0), st.body, torch.full_like(st.body, -1))
+
+
 def moving_rows(sim) -> torch.Tensor | None:
-    """The particles whose displacement decides a neighbour rebuild: with an active set,
-    its work set, and of the cold solid left out one per rigid body (they move with it);
-    None (all) without one. Made once per work set."""
+    """The particles whose displacement decides a neighbour rebuild, with an active set (None,
+    all, without one). A rigid body's particles move alike, so the particles that have been
+    of one rigid body since the last rebuild (``nl.body_ref``, set there) are checked at one
+    cold particle of it (a body with none: at all of them); every other particle is checked:
+    the fluid, the walls, and the working particles that melted, froze or were welded since
+    the last rebuild (their path since then is not their body's). Made at each rebuild, and
+    the changed ones again when the phase or body array is replaced (a phase change, a weld)."""
     a = sim.active_set
-    if a is None or a.work is None or a.work.shape[0] != sim.state.n:
+    st = sim.state
+    if a is None or a.work is None or a.work.shape[0] != st.n:
         return None
-    if sim.moving_for is not a.work:
-        st = sim.state
-        cold = ~a.work & (st.phase == Phase.SOLID) & (st.body > 0)
+    ref = sim.nl.body_ref
+    base = sim.moving_for
+    if base is None or base[0] is not a.work or base[1] is not ref:
+        if ref is None or ref.shape[0] != st.n:  # (a restart from an older checkpoint: all working rows)
+            ref = torch.where(a.work, -1, rigid_of(st))
+        rigid = ref >= 0
+        cold = ~a.work & rigid
         idx = torch.arange(st.n, device=st.device)
         big = torch.iinfo(torch.long).max
         first = torch.full((sim.body_velocity.shape[0],), big, dtype=torch.long, device=st.device).scatter_reduce(
             0, st.body, torch.where(cold, idx, torch.full_like(idx, big)), "amin")
-        keep = ~cold
-        keep.index_fill_(0, first[first < big], True)
-        sim.moving, sim.moving_for = torch.nonzero(keep).squeeze(1), a.work
+        lonely = first == big  # a body with no cold particle: each of its rows is checked
+        keep = ~rigid | (rigid & lonely.index_select(0, st.body))
+        keep.index_fill_(0, first[~lonely], True)
+        watch = torch.nonzero(a.work & ~keep).squeeze(1)  # of one body since the rebuild: checked once changed
+        base = sim.moving_for = (a.work, sim.nl.body_ref, torch.nonzero(keep).squeeze(1), watch,
+                                 ref.index_select(0, watch))
+        sim.moving_key = None
+    if sim.moving_key is None or sim.moving_key[0] is not st.phase or sim.moving_key[1] is not st.body:
+        _, _, keep, watch, ref_w = base
+        now = torch.where((st.phase.index_select(0, watch) == Phase.SOLID) & (st.body.index_select(0, watch) > 0),
+                          st.body.index_select(0, watch), -1)
+        sim.moving = torch.cat([keep, watch[now != ref_w]])
+        sim.moving_key = (st.phase, st.body)
     return sim.moving
 
 

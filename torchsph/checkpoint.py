@@ -160,7 +160,7 @@ def snapshot(sim) -> dict:
         "nl": {"x_ref": _cpu(sim.nl.x_ref), "table": {k: _cpu(v) if isinstance(v, torch.Tensor) else v
                                                       for k, v in sim.nl.table.state_dict().items()},
                "n_builds": sim.nl.n_builds, "n_partial": sim.nl.n_partial,
-               "static": _cpu(sim.nl.static), "x_full": _cpu(sim.nl.x_full)},
+               "static": _cpu(sim.nl.static), "x_full": _cpu(sim.nl.x_full), "body_ref": _cpu(sim.nl.body_ref)},
         "rng": torch.get_rng_state(),
         "stale": sim.stale,
         "plan": {"steps": sim.plan.steps, "sums": sim.plan.sums},
@@ -275,6 +275,9 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     sim.nl.n_partial = nl.get("n_partial", 0)
     sim.nl.static = to(nl["static"]) if nl.get("static") is not None else None
     sim.nl.x_full = to(nl["x_full"]) if nl.get("x_full") is not None else None
+    # each particle's rigid body at the last build (absent in older checkpoints: every working
+    # particle's displacement is checked until the next build)
+    sim.nl.body_ref = to(nl["body_ref"]) if nl.get("body_ref") is not None else None
     sim.stale = d.get("stale", False)
     if sim.active_set is not None and "active" in d:
         a = d["active"]

@@ -385,6 +385,7 @@ class VerletList:
         self.static: torch.Tensor | None = None  # rows whose mutual pairs the table holds (one body)
         self.x_full: torch.Tensor | None = None  # positions at the last full build
         self.x_mig: torch.Tensor | None = None  # a decomposed run's positions at the last migration
+        self.body_ref: torch.Tensor | None = None  # each particle's rigid body at the last build (-1: none; set by the step)
 
     @property
     def nb(self) -> torch.Tensor | None:

@@ -36,6 +36,7 @@ def particle_arrays(sim) -> dict[str, torch.Tensor]:
     d["dvdt"], d["drhodt"], d["dTdt"] = sim.dvdt, sim.drhodt, sim.dTdt
     d["nl.x_ref"] = sim.nl.x_ref
     d["nl.x_mig"] = sim.nl.x_mig
+    d["nl.body_ref"] = sim.nl.body_ref
     th = sim.thermal
     if th is not None:
         d.update({"th.k": th.k, "th.T_set": th.T_set, "th.steady": th.steady, "th.x_op": th.x_op,

@@ -145,10 +145,11 @@ class Simulation:
         if self.nl.update(self.state.x, force=force, subset=subset, rigid=rigid, rows=self.moving_rows()):
             self.stale = False
             self.rebuilt = True
+            self.nl.body_ref = bookkeeping.rigid_of(self.state)  # whose motion is their body's from here
             self.select_pairs(new_table=True)
             self.moving_rows()  # for the new work set, at the rebuild
 
-    moving = moving_for = None  # the rows of moving_rows() and the work set they were made for
+    moving = moving_for = moving_key = None  # the rows of moving_rows() and what they were made for
 
     def moving_rows(self) -> torch.Tensor | None:
         return bookkeeping.moving_rows(self)
