@@ -106,7 +106,7 @@ def rearm(sim, arrays: dict[str, torch.Tensor], table=None):
     caches = ("th.", "sf.") + tuple(f"{term.section}." for term in sim.terms)
     set_particle_arrays(sim, {k: v for k, v in arrays.items() if k.startswith(caches)})
     if sim.fluid is not None:
-        saved = sim.dvdt
+        saved = sim.dvdt.clone()  # (the evaluation may write into the same reused array)
         sim.fluid.momentum(sim.state, sim.state.v)  # sets p and the cached geometry only
         sim.dvdt = saved
 

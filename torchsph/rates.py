@@ -22,13 +22,22 @@ def accelerations(sim, v_eval, terms: bool = False):
                    {**out[1], term.section: torch.zeros_like(out[0]).index_add_(0, rows, a)})
         else:
             out = out.index_add_(0, rows, a)
+            mark(sim, out, rows)
     if sim.surface is None:
         return out
-    if not terms:  # the surface particles' accelerations added into the fresh array
+    if not terms:  # the surface particles' accelerations added into the fluid's array
         rows, a_s = sim.surface.accelerations(sim.state, rows_only=True)
+        mark(sim, out, rows)
         return out.index_add_(0, rows, a_s)
     a_s, parts_s = sim.surface.accelerations(sim.state, terms=True)
     return out[0] + a_s, {**out[1], **parts_s}
+
+
+def mark(sim, out: torch.Tensor, rows: torch.Tensor):
+    """``rows`` of the accelerations ``out`` were added into (the reused array zeroes them next time)."""
+    e = sim.outs.get("dvdt")
+    if e is not None:
+        e.mark(out, rows)
 
 
 def heat_power(sim, T: torch.Tensor, t: float, rows_only: bool = False):

@@ -18,7 +18,7 @@ import torch
 from . import bookkeeping, diagnosis, limits as step_limits, particles, rates, step
 from .active import ActiveSet
 from .comm import SerialComm
-from .fluid import WeaklyCompressibleFluid
+from .fluid import Embedded, WeaklyCompressibleFluid
 from .limits import LIMIT_FORMULAS, SimulationError, StepInfo, UnstableStepError  # noqa: F401 (re-exported)
 from .neighbors import Domain, VerletList
 from .particles import LAZY_CACHES  # noqa: F401 (re-exported)
@@ -65,6 +65,10 @@ class Simulation:
         self.fluid_mask = state.phase == Phase.FLUID
         self.n_fluid = int(self.fluid_mask.sum())
         self.fluid_model = fluid  # active only while there are fluid particles
+        # the rate arrays, reused from step to step in one process (torchsph.fluid.Embedded)
+        self.outs = {k: Embedded() for k in ("dvdt", "drhodt", "dTdt")} if self.comm.size == 1 else {}
+        if fluid is not None:
+            fluid.outs = self.outs
         self.thermal = thermal
         self.surface_model = surface  # free-surface forces; active with the fluid
         if surface is not None and fluid is None:

@@ -136,7 +136,7 @@ def close_energy(sim, dt: torch.Tensor, t_end: torch.Tensor, rows, H_half) -> En
     (:meth:`~torchsph.thermal.Conduction.prepare`)."""
     s, th = sim.state, sim.thermal
     P_r, heat = rates.heat_power(sim, s.T, t_end, rows_only=True)  # 2 (W per particle of the rows; 0 elsewhere)
-    sim.dTdt = embed(th.rows, P_r / s.m.index_select(0, th.rows), s.n)  # (the rows of now: a rebuild may have changed them)
+    sim.dTdt = embed(th.rows, P_r / s.m.index_select(0, th.rows), s.n, sim.outs.get("dTdt"))  # (the rows of now: a rebuild may have changed them)
     for k, v in heat.items():  # accumulated on the device: no sync per step
         sim.energy[k] = sim.energy.get(k, 0.0) + 0.5 * dt * (sim.heat_totals[k] + v)
     sim.heat_totals = heat
