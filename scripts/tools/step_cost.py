@@ -1,7 +1,7 @@
 """How a run's step cost grows with its heated zone: ms per step over windows of process time.
 
     python scripts/tools/step_cost.py CASE --t-end T [--window W] [--set key=value ...] [--out FILE]
-                                      [--checkpoint FILE]
+                                      [--checkpoint FILE] [--restart FILE]
     mpirun -n 2 python scripts/tools/step_cost.py CASE --t-end T ...
 
 Runs the case (in one process, or decomposed when launched by mpirun) from t = 0 to T and
@@ -11,7 +11,9 @@ summed over ranks), and at the end the projection of the case's whole ``run.t_en
 the last window's cost (process time per wall second). With ``--out`` the table is also
 written as JSON. The set-up is timed apart. Nothing else is written (no snapshots), but
 with ``--checkpoint`` the state at T (a checkpoint `python -m torchsph CASE --restart FILE`
-continues, and the deposition bench's late state).
+continues, and the deposition bench's late state). With ``--restart`` (one process) the run
+continues from a checkpoint of the case (``python -m torchsph CASE --out DIR`` or ``--checkpoint``)
+instead of starting at t = 0: the cost beyond a first leg.
 """
 from __future__ import annotations
 
@@ -35,9 +37,12 @@ def main():
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--checkpoint", type=Path, default=None, help="write the state at --t-end here")
+    ap.add_argument("--restart", type=Path, default=None, help="continue from this checkpoint (one process)")
     a = ap.parse_args()
     _, cfg = load_case(a.case, a.overrides)
     comm = None
+    if a.restart is not None and mpi_size() > 1:
+        sys.exit("step_cost.py: --restart runs in one process")
     if mpi_size() > 1:
         from parallel.slab import install_abort_hook, make_comm
         install_abort_hook()
@@ -45,7 +50,11 @@ def main():
     root = comm is None or comm.rank == 0
     sum_ = (lambda v: v) if comm is None else comm.sum
     t0 = time.perf_counter()
-    _, sim = make_simulation(cfg, comm=comm)
+    if a.restart is not None:
+        from torchsph.runner import simulation_from_run
+        cfg, sim = simulation_from_run(a.restart)
+    else:
+        _, sim = make_simulation(cfg, comm=comm)
     setup = time.perf_counter() - t0
     ranks = 1 if comm is None else comm.size
     n_all = sim.state.n if comm is None else int(sum_([comm.n_owned])[0])  # (a collective: every rank)
