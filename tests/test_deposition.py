@@ -351,6 +351,58 @@ def test_rigid_geometry_kept_across_rebuilds_equals_recomputing_it():
     assert worst["zeta"] < 1e-12 and worst["area"] < 1e-12 and worst["normal"] < 1e-9, worst
 
 
+def test_the_rebuild_check_on_its_few_rows_sees_the_largest_displacement():
+    """The neighbour rebuild is decided on the fluid, the walls, the particles whose rigid body
+    changed since the last build and one cold particle per rigid body
+    (torchsph.bookkeeping.moving_rows), not on every particle: at every step of a run with melt,
+    freezing and a fed wire, every particle left out of them has moved since the last build as
+    one of them has (to round-off: it moved with a body they represent), so the largest
+    displacement is theirs, while they are far fewer (a longer substrate and wire than the
+    small scene's, so that cold solid is left out of the work)."""
+    cfg = small("scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1", "scene.substrate_size_m=[10.0e-3, 3.0e-3, 1.0e-3]",
+                "scene.wire_length_m=3.0e-3")
+    _, sim = make_simulation(cfg)
+    worst, fewer, phases, checked, changed = 0.0, 0, set(), 0, 0
+    for _ in range(300):
+        s, ref = sim.state, sim.nl.x_ref
+        rows = sim.moving_rows()
+        if rows is not None and ref.shape == s.x.shape:
+            d = sim.domain.minimum_image(s.x - ref)
+            out = torch.ones(s.n, dtype=torch.bool).index_fill_(0, rows, False)
+            # each left-out particle's displacement against the nearest of the rows' (m)
+            gap = torch.cdist(d[out], d.index_select(0, rows)).min(1).values
+            worst = max(worst, float(gap.max()))
+            fewer += rows.numel() < 0.5 * int(sim.active_set.work.sum())
+            changed += rows.numel() > sim.moving_for[2].numel()  # rows that left their body since the build
+            checked += 1
+        phases.add(id(s.phase))
+        run_steps(sim, steps=1)
+    assert int((sim.state.phase == Phase.FLUID).sum()) > 0 and sim.feeder.n_fed >= 1
+    assert len(phases) > 3  # the phase array was replaced: melting or freezing between builds
+    assert checked > 250 and fewer > 0.9 * checked and changed > 0, (checked, fewer, changed)
+    assert worst < 1e-8 * sim.nl.skin, (worst, sim.nl.skin)
+
+
+def test_reused_rate_arrays_give_the_same_run_as_fresh_ones():
+    """dv/dt, drho/dt and dh/dt are written into arrays reused from step to step, zeroing only
+    the rows written the step before (torchsph.fluid.Embedded): a run with melt, surface
+    forces, the contact term and a fed wire is the same bit for bit as one that makes every
+    rate array afresh."""
+    cfg = small("scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1")
+    _, reused = make_simulation(cfg)
+    _, fresh = make_simulation(cfg)
+    fresh.outs.clear()  # (the fluid model reads the same dict)
+    assert reused.outs and fresh.fluid_model.outs == {}
+    run_steps(reused, steps=300)
+    run_steps(fresh, steps=300)
+    assert int((reused.state.phase == Phase.FLUID).sum()) > 0
+    assert reused.dvdt is reused.outs["dvdt"].out  # the reused array was in use
+    for k in ("x", "v", "rho", "T"):
+        assert torch.equal(getattr(reused.state, k), getattr(fresh.state, k)), k
+    for k in ("dvdt", "drhodt", "dTdt"):
+        assert torch.equal(getattr(reused, k), getattr(fresh, k)), k
+
+
 def test_rows_leaving_the_active_set_close_the_energy_balance():
     """A row the active set lets go of is no longer integrated: with warm rows of non-zero
     conduction rate taken out at a rebuild, the energy balance still closes to round-off

@@ -149,3 +149,29 @@ def test_taylor_green_with_no_numerics_table_gets_the_verified_scheme(tmp_path):
     umax = float(sim.state.v.norm(dim=-1).max())
     exact = math.exp(-8.0 * math.pi**2 / 400.0)
     assert abs(umax / exact - 1.0) < 0.02, umax / exact
+
+
+def test_a_reused_rate_array_is_zero_off_the_rows_of_its_last_use():
+    """torchsph.fluid.Embedded hands out one array again and again, zeroing only the rows written
+    at its last use (put, and added into and marked): after uses on other rows, and after an
+    addition into marked rows, it equals the array made afresh, bit for bit; a mark on another
+    array is not its own; a new length makes a new array."""
+    from torchsph.fluid import Embedded, embed
+
+    g = torch.Generator().manual_seed(3)
+    e = Embedded()
+    n = 50
+    for step in range(6):
+        rows = torch.randperm(n, generator=g)[: 5 + 7 * (step % 3)].sort().values
+        vals = torch.randn(rows.numel(), 3, dtype=torch.float64, generator=g)
+        out = embed(rows, vals, n, e)
+        ref = embed(rows, vals, n)
+        assert torch.equal(out, ref)
+        extra = torch.randperm(n, generator=g)[:4]  # an addition into other rows (a force term's)
+        add = torch.randn(4, 3, dtype=torch.float64, generator=g)
+        out.index_add_(0, extra, add)
+        e.mark(out, extra)
+        e.mark(torch.zeros(n, 3, dtype=torch.float64), torch.arange(n))  # not its array: ignored
+        assert e.out is out and len(e.dirty) == 2
+    longer = embed(rows, vals, n + 1, e)
+    assert longer.shape[0] == n + 1 and longer is e.out and torch.equal(longer, embed(rows, vals, n + 1))

@@ -11,9 +11,9 @@ from .state import ParticleState, Phase
 from .thermal import stored_energy
 
 
-def rigid_of(st: ParticleState) -> torch.Tensor:
+def rigid_of(phase: torch.Tensor, body: torch.Tensor) -> torch.Tensor:
     """Each particle's rigid body (solid with a body > 0), -1 where it is not rigid."""
-    return torch.where((st.phase == Phase.SOLID) & (st.body > 0), st.body, torch.full_like(st.body, -1))
+    return torch.where((phase == Phase.SOLID) & (body > 0), body, torch.full_like(body, -1))
 
 
 def moving_rows(sim) -> torch.Tensor | None:
@@ -32,7 +32,7 @@ def moving_rows(sim) -> torch.Tensor | None:
     base = sim.moving_for
     if base is None or base[0] is not a.work or base[1] is not ref:
         if ref is None or ref.shape[0] != st.n:  # (a restart from an older checkpoint: all working rows)
-            ref = torch.where(a.work, -1, rigid_of(st))
+            ref = torch.where(a.work, -1, rigid_of(st.phase, st.body))
         rigid = ref >= 0
         cold = ~a.work & rigid
         idx = torch.arange(st.n, device=st.device)
@@ -48,8 +48,7 @@ def moving_rows(sim) -> torch.Tensor | None:
         sim.moving_key = None
     if sim.moving_key is None or sim.moving_key[0] is not st.phase or sim.moving_key[1] is not st.body:
         _, _, keep, watch, ref_w = base
-        now = torch.where((st.phase.index_select(0, watch) == Phase.SOLID) & (st.body.index_select(0, watch) > 0),
-                          st.body.index_select(0, watch), -1)
+        now = rigid_of(st.phase.index_select(0, watch), st.body.index_select(0, watch))
         sim.moving = torch.cat([keep, watch[now != ref_w]])
         sim.moving_key = (st.phase, st.body)
     return sim.moving

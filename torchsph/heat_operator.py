@@ -56,29 +56,14 @@ def material_factor(k_i, k_j, z_i, z_j):
     return 4.0 * k_i * k_j / (k_i + k_j) * (2.0 / (z_i + z_j))
 
 
-def entry_material(k: torch.Tensor, zeta: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
-    """:func:`material_factor` of the entries (i, j). Where every particle conducts alike (one
-    material), its conductivity part is one number, made by the same operations: the same
-    values without the two gathers and three passes over the entries (a full build of the
-    full scene's operator, 3.9 M entries, spent 35-85 ms in them)."""
-    k1 = uniform_value(k)
-    z = 2.0 / (zeta.index_select(0, i) + zeta.index_select(0, j))
-    if k1 is None:
-        return 4.0 * k.index_select(0, i) * k.index_select(0, j) / (k.index_select(0, i) + k.index_select(0, j)) * z
-    return 4.0 * k1 * k1 / (k1 + k1) * z
-
-
-_uniform: tuple = (None, None)
-
-
-def uniform_value(k: torch.Tensor) -> torch.Tensor | None:
-    """The one value of ``k`` (a 0-d tensor) where all its entries are equal, else None; read
-    once per array (a host read, at a build)."""
-    global _uniform
-    if _uniform[0] is not k:
-        one = k.numel() > 0 and bool(k.min() == k.max())
-        _uniform = (k, k[0].clone() if one else None)
-    return _uniform[1]
+def entry_material(k: torch.Tensor, zeta: torch.Tensor, i: torch.Tensor, j: torch.Tensor,
+                   k1: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`material_factor` of the entries (i, j). ``k1``: the one conductivity of a scene
+    of one material (a 0-d tensor), whose part is then one number made by the same operations:
+    the same values without the two gathers and three passes over the entries (a full build of
+    the full scene's operator, 3.9 M entries, spent 35-85 ms in them)."""
+    k_i, k_j = (k1, k1) if k1 is not None else (k.index_select(0, i), k.index_select(0, j))
+    return material_factor(k_i, k_j, zeta.index_select(0, i), zeta.index_select(0, j))
 
 
 def rows_of(x: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
@@ -243,11 +228,12 @@ class ConductionOperator:
 
     built_from = None  # (k, zeta, steady) of this operator's last build
 
-    def build(self, k, zeta):
+    def build(self, k, zeta, k1: torch.Tensor | None = None):
         """G's values: g_ij for the rigid pairs whose particles are both still steady, 0 for
         the others (their pairs are among the moving ones now). A build after the first
         makes only the entries with a particle whose k, zeta or steady flag changed (the
-        others' values are functions of unchanged inputs: the same bits)."""
+        others' values are functions of unchanged inputs: the same bits). ``k1``: k's one
+        value where all are equal (:func:`entry_material`)."""
         i, j = self.g_i, self.g_j
         prev = self.built_from
         if prev is not None and prev[1].shape == zeta.shape and prev[0].shape == k.shape:
@@ -258,11 +244,11 @@ class ConductionOperator:
             redo = torch.nonzero(ch.index_select(0, i) | ch.index_select(0, j)).squeeze(1)
             ri, rj = i.index_select(0, redo), j.index_select(0, redo)
             live = self.steady.index_select(0, ri) & self.steady.index_select(0, rj)
-            gr = entry_material(k, zeta, ri, rj) * self.g_f.index_select(0, redo)
+            gr = entry_material(k, zeta, ri, rj, k1) * self.g_f.index_select(0, redo)
             g = self.g.index_copy_(0, redo, torch.where(live, gr, torch.zeros_like(gr)))  # (G is made anew from it below)
         else:
             live = self.steady.index_select(0, i) & self.steady.index_select(0, j)
-            g = entry_material(k, zeta, i, j) * self.g_f
+            g = entry_material(k, zeta, i, j, k1) * self.g_f
             g = torch.where(live, g, torch.zeros_like(g))
         self.g = g
         self.built_from = (k, zeta, self.steady)

@@ -149,7 +149,7 @@ class Simulation:
         if self.nl.update(self.state.x, force=force, subset=subset, rigid=rigid, rows=self.moving_rows()):
             self.stale = False
             self.rebuilt = True
-            self.nl.body_ref = bookkeeping.rigid_of(self.state)  # whose motion is their body's from here
+            self.nl.body_ref = bookkeeping.rigid_of(self.state.phase, self.state.body)  # whose motion is their body's from here
             self.select_pairs(new_table=True)
             self.moving_rows()  # for the new work set, at the rebuild
 

@@ -87,11 +87,9 @@ def first_half(sim, dt: torch.Tensor) -> Half:
 
 
 def whole_velocities(s, half: Half, fr, keep: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """(u_{n+1/2}, u~) as whole arrays of their own, where the step adds or removes
-    particles between its halves (the state's v holds u~ on the fluid rows ``fr``; with
+    """(u_{n+1/2}, u~) as whole arrays of their own, where an in-place step (``half.vh_f``) adds
+    or removes particles between its halves (the state's v holds u~ on the fluid rows ``fr``; with
     ``keep``, the mask of the rows the state kept of the step's, which it holds already)."""
-    if half.v_half is not None:
-        return (half.v_half, half.v_tilde) if keep is None else (half.v_half[keep], half.v_tilde[keep])
     vh_f = half.vh_f
     if keep is not None:  # the kept fluid rows, renumbered
         kf = keep.index_select(0, fr)

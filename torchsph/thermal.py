@@ -469,7 +469,7 @@ class Conduction:
         if self.zeta_cache is None:
             self.zeta_cache = self.zeta(state)
         if not self.op.built:  # once per selection, when zeta is known
-            self.op.build(self.k, self.zeta_cache)
+            self.op.build(self.k, self.zeta_cache, self.k_summary()[1])
 
     def heat_rate_rows(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
         """div(k grad T) (W/m^3) on ``rows`` only."""
@@ -595,12 +595,20 @@ class Conduction:
     def limit(self, state: ParticleState):
         """Thermal time-step limit 0.125 rho c_p h^2 / k (3.17, fixed), a 0-d float64 tensor
         (inf without conduction)."""
-        memo = self.__dict__.get("_kmax")  # once per conductivity array (a pass over every particle)
-        if memo is None or memo[0] is not self.k:
-            memo = self._kmax = (self.k, self.k.max().double())
-        kmax = memo[1]
+        kmax = self.k_summary()[0]
         lim = 0.125 * self.rho_min(state).double() * self.prm.specific_heat * self.h**2 / kmax
         return torch.where(kmax > 0, lim, torch.full_like(lim, math.inf))
+
+    def k_summary(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(the largest conductivity as a 0-d float64 tensor, the one conductivity where all are
+        equal or None), made once per conductivity array: passes over every particle (and one
+        host read) at the first use after k is set, not at every step."""
+        memo = self.__dict__.get("_k_summary")
+        if memo is None or memo[0] is not self.k:
+            k = self.k
+            kmax = k.max()
+            memo = self._k_summary = (k, kmax.double(), k[0].clone() if bool(k.min() == kmax) else None)
+        return memo[1], memo[2]
 
     def rho_min(self, state: ParticleState) -> torch.Tensor:
         """The smallest density of all particles, reading only the rows, the walls among them
