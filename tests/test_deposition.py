@@ -351,17 +351,22 @@ def test_rigid_geometry_kept_across_rebuilds_equals_recomputing_it():
     assert worst["zeta"] < 1e-12 and worst["area"] < 1e-12 and worst["normal"] < 1e-9, worst
 
 
-def test_the_rebuild_check_on_its_few_rows_sees_the_largest_displacement():
+@pytest.mark.parametrize("heated", [False, True], ids=["cold_solid_left_out", "every_particle_working"])
+def test_the_rebuild_check_on_its_few_rows_sees_the_largest_displacement(heated):
     """The neighbour rebuild is decided on the fluid, the walls, the particles whose rigid body
-    changed since the last build and one cold particle per rigid body
+    changed since the last build and one particle per rigid body, a cold one where it has one
     (torchsph.bookkeeping.moving_rows), not on every particle: at every step of a run with melt,
     freezing and a fed wire, every particle left out of them has moved since the last build as
     one of them has (to round-off: it moved with a body they represent), so the largest
-    displacement is theirs, while they are far fewer (a longer substrate and wire than the
-    small scene's, so that cold solid is left out of the work)."""
-    cfg = small("scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1", "scene.substrate_size_m=[10.0e-3, 3.0e-3, 1.0e-3]",
-                "scene.wire_length_m=3.0e-3")
+    displacement is theirs, while they are far fewer. Once with a longer substrate and wire than
+    the small scene's, so that cold solid is left out of the work; once with a tolerance that
+    puts every particle in the work, so that no body has a cold particle (late in the full
+    scene: the rows stand for a body at a working particle, chosen again at each phase change)."""
+    over = ("numerics.active_tolerance_K=1e-9",) if heated else (
+        "scene.substrate_size_m=[10.0e-3, 3.0e-3, 1.0e-3]", "scene.wire_length_m=3.0e-3")
+    cfg = small("scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1", *over)
     _, sim = make_simulation(cfg)
+    lonely = 0
     worst, fewer, phases, checked, changed = 0.0, 0, set(), 0, 0
     for _ in range(300):
         s, ref = sim.state, sim.nl.x_ref
@@ -374,12 +379,15 @@ def test_the_rebuild_check_on_its_few_rows_sees_the_largest_displacement():
             worst = max(worst, float(gap.max()))
             fewer += rows.numel() < 0.5 * int(sim.active_set.work.sum())
             changed += rows.numel() > sim.moving_for[2].numel()  # rows that left their body since the build
+            no_cold = sim.moving_for[5]  # the bodies without a cold particle
+            lonely += no_cold is not None and bool(no_cold[int(torch.bincount(s.body).argmax())])  # the substrate
             checked += 1
         phases.add(id(s.phase))
         run_steps(sim, steps=1)
     assert int((sim.state.phase == Phase.FLUID).sum()) > 0 and sim.feeder.n_fed >= 1
     assert len(phases) > 3  # the phase array was replaced: melting or freezing between builds
     assert checked > 250 and fewer > 0.9 * checked and changed > 0, (checked, fewer, changed)
+    assert (lonely > 0.9 * checked) if heated else lonely == 0, lonely
     assert worst < 1e-8 * sim.nl.skin, (worst, sim.nl.skin)
 
 

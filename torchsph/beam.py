@@ -132,22 +132,29 @@ def reachable(beams, x: torch.Tensor, reach: float, cutoff: float = 3.0) -> list
     return out
 
 
-def beams_power(beams, x: torch.Tensor, t: float, dx: float, subsets: list | None = None) -> torch.Tensor:
-    """Power (W) each row of ``x`` absorbs from all ``beams`` (all rows material); each beam
-    traced only on its rows of ``subsets`` (:func:`reachable`; None: on all)."""
-    total = 0
+def beams_power(beams, x: torch.Tensor, t: float, dx: float, subsets: list | None = None,
+                rows: torch.Tensor | None = None) -> torch.Tensor:
+    """Power (W) each row absorbs from all ``beams`` (all rows material); each beam traced
+    only on its rows of ``subsets`` (:func:`reachable`; None: on all). The rows are those of
+    ``x``, or with ``rows`` the particles ``rows`` of ``x`` (positions of every particle):
+    then only the rows a beam traces are gathered (the full scene's 733 600 conducting rows
+    made a 7 ms copy per step for the few thousand a beam can reach)."""
+    n = x.shape[0] if rows is None else rows.numel()
+    at = (lambda idx: x.index_select(0, idx)) if rows is None else (lambda idx: x.index_select(0, rows.index_select(0, idx)))  # noqa: E731
+    ones = lambda m: torch.ones(m, dtype=torch.bool, device=x.device)  # noqa: E731
+    total = None
     for k, b in enumerate(beams):
         sub = None if subsets is None else subsets[k]
         if sub is None:
-            total = total + beam_power(x, torch.ones(x.shape[0], dtype=torch.bool, device=x.device), b, t, dx)
+            xr = x if rows is None else x.index_select(0, rows)
+            p = beam_power(xr, ones(n), b, t, dx)
+            total = p if total is None else total + p
             continue
-        p = torch.zeros(x.shape[0], dtype=x.dtype, device=x.device)
+        if total is None:
+            total = torch.zeros(n, dtype=x.dtype, device=x.device)
         if sub.numel():  # (nothing within its reach: none)
-            xs = x.index_select(0, sub)
-            p = p.index_copy_(0, sub, beam_power(xs, torch.ones(sub.numel(), dtype=torch.bool, device=x.device),
-                                                 b, t, dx))
-        total = total + p
-    return total
+            total = total.index_add(0, sub, beam_power(at(sub), ones(sub.numel()), b, t, dx))
+    return total if total is not None else torch.zeros(n, dtype=x.dtype, device=x.device)
 
 
 def gaussian_fraction_in_strip(width: float, radius: float) -> float:

@@ -20,7 +20,8 @@ def moving_rows(sim) -> torch.Tensor | None:
     """The particles whose displacement decides a neighbour rebuild, with an active set (None,
     all, without one). A rigid body's particles move alike, so the particles that have been
     of one rigid body since the last rebuild (``nl.body_ref``, set there) are checked at one
-    cold particle of it (a body with none: at all of them); every other particle is checked:
+    cold particle of it (a body with none, the whole scene heated: at its first particle still of it,
+    chosen again when the phases change); every other particle is checked:
     the fluid, the walls, and the working particles that melted, froze or were welded since
     the last rebuild (their path since then is not their body's). Made at each rebuild, and
     the changed ones again when the phase or body array is replaced (a phase change, a weld)."""
@@ -39,17 +40,27 @@ def moving_rows(sim) -> torch.Tensor | None:
         big = torch.iinfo(torch.long).max
         first = torch.full((sim.body_velocity.shape[0],), big, dtype=torch.long, device=st.device).scatter_reduce(
             0, st.body, torch.where(cold, idx, torch.full_like(idx, big)), "amin")
-        lonely = first == big  # a body with no cold particle: each of its rows is checked
-        keep = ~rigid | (rigid & lonely.index_select(0, st.body))
-        keep.index_fill_(0, first[~lonely], True)
+        lonely = first == big  # a body with no cold particle: checked at one working particle of it
+        lonely &= torch.zeros_like(lonely).index_fill_(0, ref[rigid], True)  # (bodies with rigid particles)
+        keep = ~rigid
+        keep.index_fill_(0, first[first != big], True)
         watch = torch.nonzero(a.work & ~keep).squeeze(1)  # of one body since the rebuild: checked once changed
-        base = sim.moving_for = (a.work, sim.nl.body_ref, torch.nonzero(keep).squeeze(1), watch,
-                                 ref.index_select(0, watch))
+        ref_w = ref.index_select(0, watch)
+        base = sim.moving_for = (a.work, sim.nl.body_ref, torch.nonzero(keep).squeeze(1), watch, ref_w,
+                                 lonely if bool(lonely.any()) else None)
         sim.moving_key = None
     if sim.moving_key is None or sim.moving_key[0] is not st.phase or sim.moving_key[1] is not st.body:
-        _, _, keep, watch, ref_w = base
+        _, _, keep, watch, ref_w, lonely = base
         now = rigid_of(st.phase.index_select(0, watch), st.body.index_select(0, watch))
-        sim.moving = torch.cat([keep, watch[now != ref_w]])
+        parts = [keep, watch[now != ref_w]]
+        if lonely is not None:  # each such body's first particle still of it since the rebuild
+            big = torch.iinfo(torch.long).max
+            mine = (now == ref_w) & (ref_w >= 0)
+            mine &= lonely.index_select(0, ref_w.clamp_min(0))
+            first = torch.full_like(lonely, big, dtype=torch.long).scatter_reduce(
+                0, ref_w.clamp_min(0), torch.where(mine, watch, torch.full_like(watch, big)), "amin")
+            parts.append(first[first != big])  # (a body all of whose particles changed: none left to stand for)
+        sim.moving = torch.cat(parts)
         sim.moving_key = (st.phase, st.body)
     return sim.moving
 
