@@ -14,7 +14,7 @@ scaled by (dx_coarse / dx_fine)^3 (particles per volume).
 With a cost model ``ms/step = a + b * work / 1000`` (``--cost-a``, ``--cost-b``, measured on
 the fine scene, e.g. by ``scripts/tools/step_cost.py``), it prints the projected run time:
 the integral of the step cost over the run at ``--steps-per-ms`` steps per millisecond of
-process. Rows are printed as a table (t, seeds, conducting, work, projected ms/step).
+process (to ``--t-end``, the last snapshot's cost held beyond it). Rows are printed as a table (t, seeds, conducting, work, projected ms/step).
 """
 from __future__ import annotations
 
@@ -53,6 +53,8 @@ def main():
     ap.add_argument("--cost-a", type=float, default=None, help="ms per step at no work (the fit's intercept)")
     ap.add_argument("--cost-b", type=float, default=None, help="ms per step per 1000 working particles")
     ap.add_argument("--steps-per-ms", type=float, default=None, help="steps per millisecond of process (fine run)")
+    ap.add_argument("--t-end", type=float, default=None,
+                    help="project to this time (s), the last snapshot's cost held beyond it (a lower bound: the work only grows)")
     a = ap.parse_args()
     cfg, snaps = load_run(a.run)
     dx_c = float(cfg["scene"]["dx_m"])
@@ -85,6 +87,8 @@ def main():
     if cost and a.steps_per_ms and len(rows) > 1:
         t = np.array([r[0] for r in rows])
         ms = np.array([r[2] for r in rows])
+        if a.t_end is not None and a.t_end > t[-1]:
+            t, ms = np.append(t, a.t_end), np.append(ms, ms[-1])
         hours = np.trapezoid(ms, t * 1e3) * a.steps_per_ms / 1e3 / 3600
         print(f"projected: {hours:.1f} h for t = {t[0] * 1e3:.0f}..{t[-1] * 1e3:.0f} ms "
               f"({a.steps_per_ms:g} steps per ms, ms/step = {a.cost_a:g} + {a.cost_b:g} x work/1000)")
