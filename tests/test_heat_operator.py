@@ -243,3 +243,35 @@ def test_rigid_marks_from_the_few_rows_equal_every_rows_own():
     sim.select_pairs = checked
     run_steps(sim, steps=250)
     assert seen["checks"] > 5 and seen["fluid"] > 0, seen
+
+
+def test_an_operator_made_in_blocks_of_rows_is_the_one_made_whole(monkeypatch):
+    """The rigid entries are made in blocks of rows (a whole build of the full scene once every
+    particle works peaked at ~20 GB): the same entries, values and order as in one go, bit
+    for bit, for a build and for a follow, with blocks that cut the rows unevenly."""
+    from torchsph import heat_operator
+    from torchsph.heat_operator import ConductionOperator
+    st, c = cloud_conduction(n=600, seed=4)
+    n = st.n
+    g = torch.Generator().manual_seed(6)
+    body = (st.x[:, 0] > 0.8e-3).long()
+    steady = torch.rand(n, generator=g, dtype=torch.float64) > 0.1
+    nb, mask = build_table(st.x, 2 * c.h, c.domain)
+    rows_a = torch.nonzero(st.x[:, 0] < 0.6e-3).squeeze(1)
+    rows_b = torch.nonzero(st.x[:, 0] > 0.3e-3).squeeze(1)
+    args = (c.kernel, c.h, c.domain)
+
+    def make():
+        a = ConductionOperator(rows_a, nb[rows_a], mask[rows_a], st.x, steady, body, *args)
+        return a, a.follow(rows_b, lambda at: (nb[rows_b][at], mask[rows_b][at]), st.x, steady, body)
+
+    whole = make()
+    monkeypatch.setattr(heat_operator, "ENTRY_BLOCK", 7 * nb.shape[1] + 3)  # 7 rows a block
+    calls, block = [], heat_operator.rigid_block
+    monkeypatch.setattr(heat_operator, "rigid_block", lambda *a: calls.append(a[0].numel()) or block(*a))
+    blocks = make()
+    assert rows_a.numel() > 50 and whole[0].n_static > 1000
+    assert len(calls) > rows_a.numel() // 7 and max(calls) == 7  # made block by block
+    for w, b in zip(whole, blocks):
+        for name in ("g_row", "g_j", "g_f", "crow", "cols"):
+            assert torch.equal(getattr(w, name), getattr(b, name)), name

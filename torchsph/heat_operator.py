@@ -72,10 +72,28 @@ def rows_of(x: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
     return torch.gather(x, 0, i.unsqueeze(1).expand(-1, x.shape[1]))
 
 
+# table entries (rows x width) :func:`rigid_entries` takes at once: its temporaries are ~40 bytes
+# an entry (positions of both ends, distances, indices), so a whole build of the full scene
+# once every particle works (734 k rows x 180) peaked at ~20 GB; in blocks of rows it is bounded
+ENTRY_BLOCK = 1 << 23
+
+
 def rigid_entries(ri, rows, nb, mask, x_op, steady, body, kernel: Kernel, h: float, domain: Domain):
     """The rigid pairs of the table rows ``nb``, ``mask`` (of the particles ``rows``, whose
     places in the operator are ``ri``, ascending): both steady, of one body, inside the
-    kernel's support at ``x_op``. Returns (row, i, j, (1/r) dW/dr) in (row, column) order."""
+    kernel's support at ``x_op``. Returns (row, i, j, (1/r) dW/dr) in (row, column) order.
+    Taken in blocks of rows of at most :data:`ENTRY_BLOCK` table entries (the same entries
+    in the same order: a block's rows come after the previous block's)."""
+    R, kk = nb.shape[0], max(nb.shape[1], 1)
+    step = max(ENTRY_BLOCK // kk, 1)
+    if R <= step:
+        return rigid_block(ri, rows, nb, mask, x_op, steady, body, kernel, h, domain)
+    parts = [rigid_block(ri[a:a + step], rows[a:a + step], nb[a:a + step], mask[a:a + step], x_op, steady, body,
+                          kernel, h, domain) for a in range(0, R, step)]
+    return tuple(torch.cat(t) for t in zip(*parts))
+
+
+def rigid_block(ri, rows, nb, mask, x_op, steady, body, kernel: Kernel, h: float, domain: Domain):
     n, kk = steady.shape[0], nb.shape[1]
     at = torch.nonzero((mask & (nb != rows.unsqueeze(1))).reshape(-1)).squeeze(1)  # row-major
     r = torch.div(at, kk, rounding_mode="floor")

@@ -547,17 +547,17 @@ class Conduction:
 
     def beam_candidates(self, x_ref: torch.Tensor, reach: float | None, comm) -> list | None:
         """Per beam, the positions in ``rows`` it can reach before the next neighbour build
-        (:func:`torchsph.beam.reachable`; one process only)."""
-        if not self.beams or reach is None or (comm is not None and comm.size > 1):
+        (:func:`torchsph.beam.reachable`; each process over its own rows)."""
+        if not self.beams or reach is None:
             return None
         return reachable(self.beams, x_ref.index_select(0, self.rows), reach)
 
     def beam_power_rows(self, state: ParticleState, t: float, rows: torch.Tensor) -> torch.Tensor:
         """:meth:`beam_power` on ``rows`` only (each beam traced on the rows it can reach)."""
         comm = getattr(self, "comm", None)
-        if comm is not None and comm.size > 1:
-            return beam_power_decomposed(self, state, t, rows, comm)
         subs = self.beam_rows if rows is getattr(self, "rows", None) else None
+        if comm is not None and comm.size > 1:
+            return beam_power_decomposed(self, state, t, rows, comm, subs)
         return beams_power(self.beams, state.x, t, self.dx, subs, rows)
 
     def lit_mask(self, state: ParticleState, t: float) -> torch.Tensor | None:
@@ -774,11 +774,17 @@ def evaporation_limit(th, state: ParticleState):
     return torch.where(lmax > 0, 0.5 / lmax, torch.full_like(lmax, math.inf))
 
 
-def beam_power_decomposed(th, state: ParticleState, t: float, rows: torch.Tensor, comm):
+def beam_power_decomposed(th, state: ParticleState, t: float, rows: torch.Tensor, comm, subs: list | None = None):
     """Shadowing is global: the candidates of all processes (their own particles inside
     a beam's cylinder) are gathered in particle-id order (the order of one process), the
     beams traced over them on every process, and each local row (owned or ghost) takes
-    its particle's power by id."""
+    its particle's power by id. ``subs``: per beam, the positions in ``rows`` it can reach
+    (:meth:`Conduction.beam_candidates`): only those are looked at (late in the full scene,
+    2 ranks spent ~50 ms a step testing every row against the cylinders)."""
+    if subs is not None and subs and all(s is not None for s in subs):
+        pos = torch.unique(torch.cat(subs))
+        P = torch.zeros(rows.numel(), dtype=state.x.dtype, device=state.x.device)
+        return P.index_copy_(0, pos, beam_power_decomposed(th, state, t, rows.index_select(0, pos), comm))
     own = th.owned.index_select(0, rows)
     x, ids = state.x.index_select(0, rows), state.id.index_select(0, rows)
     cyl = torch.zeros_like(own)

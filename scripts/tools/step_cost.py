@@ -11,8 +11,8 @@ summed over ranks), and at the end the projection of the case's whole ``run.t_en
 the last window's cost (process time per wall second). With ``--out`` the table is also
 written as JSON. The set-up is timed apart. Nothing else is written (no snapshots), but
 with ``--checkpoint`` the state at T (a checkpoint `python -m torchsph CASE --restart FILE`
-continues, and the deposition bench's late state). With ``--restart`` (one process) the run
-continues from a checkpoint of the case (``python -m torchsph CASE --out DIR`` or ``--checkpoint``)
+continues, and the deposition bench's late state). With ``--restart`` (on any number of ranks)
+the run continues from a checkpoint of the case (``python -m torchsph CASE --out DIR`` or ``--checkpoint``)
 instead of starting at t = 0: the cost beyond a first leg.
 """
 from __future__ import annotations
@@ -37,24 +37,25 @@ def main():
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--checkpoint", type=Path, default=None, help="write the state at --t-end here")
-    ap.add_argument("--restart", type=Path, default=None, help="continue from this checkpoint (one process)")
+    ap.add_argument("--restart", type=Path, default=None, help="continue from this checkpoint (its run's config.json)")
     a = ap.parse_args()
     _, cfg = load_case(a.case, a.overrides)
-    comm = None
-    if a.restart is not None and mpi_size() > 1:
-        sys.exit("step_cost.py: --restart runs in one process")
+    if a.restart is not None:  # the run's own case, as its checkpoint was written with
+        cfg = json.loads((a.restart.parent / "config.json").read_text())
+        cfg.pop("case", None)
+    comm = procs = None
     if mpi_size() > 1:
-        from parallel.slab import install_abort_hook, make_comm
+        from parallel.run import SlabRun
+        from parallel.slab import install_abort_hook
         install_abort_hook()
-        comm = make_comm(cfg)
+        procs = SlabRun(cfg)
+        comm = procs.comm
     root = comm is None or comm.rank == 0
     sum_ = (lambda v: v) if comm is None else comm.sum
     t0 = time.perf_counter()
-    if a.restart is not None:
-        from torchsph.runner import simulation_from_run
-        cfg, sim = simulation_from_run(a.restart)
-    else:
-        _, sim = make_simulation(cfg, comm=comm)
+    _, sim = make_simulation(cfg) if procs is None else procs.make(cfg)
+    if a.restart is not None:  # (a one-process or a global checkpoint, on any number of ranks)
+        (procs or SerialRun()).restore(sim, a.restart, cfg, (procs or SerialRun()).recorded(a.restart))
     setup = time.perf_counter() - t0
     ranks = 1 if comm is None else comm.size
     n_all = sim.state.n if comm is None else int(sum_([comm.n_owned])[0])  # (a collective: every rank)
