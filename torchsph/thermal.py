@@ -511,12 +511,10 @@ class Conduction:
             self.lit = torch.zeros(n, dtype=torch.bool, device=lit.device).index_copy_(0, rows, lit)
             self.n_lit = lit.sum()  # a tensor: the plan statistics sum it without a sync per step
         if self.losses.active:
-            if self.area_cache is None:
-                self.area_cache = self.surface_area(state)
-            elif self.area_want is not None:  # the area came back with the particles (a restore)
+            if self.area_cache is not None and self.area_want is not None:  # the area came back with the particles (a restore)
                 self.area_want = None
                 self.colour.want("area", None)
-            at, srows, area = surface_rows(self, state)  # only they lose heat
+            at, srows, area = surface_rows(self, state)  # only they lose heat (the area made if due)
             fl = self.losses.flux(T.index_select(0, srows), lambda T_: enthalpy(T_, self.prm, 0.0))
             lost = {name: -f * area for name, f in fl.items()}
         else:
@@ -758,8 +756,6 @@ def evaporation_limit(th, state: ParticleState):
     so that a surface particle's loss changes little over a step (explicit
     integration of dT/dt = -lambda T is stable for lambda dt < 2; 0.5 keeps it accurate).
     A 0-d float64 tensor."""
-    if th.area_cache is None:
-        th.area_cache = th.surface_area(state)
     L = th.losses
     _, rows, area = surface_rows(th, state)  # the others have no surface area
     if not rows.numel():
@@ -782,7 +778,10 @@ def beam_power_decomposed(th, state: ParticleState, t: float, rows: torch.Tensor
     (:meth:`Conduction.beam_candidates`): only those are looked at (late in the full scene,
     2 ranks spent ~50 ms a step testing every row against the cylinders)."""
     if subs is not None and subs and all(s is not None for s in subs):
-        pos = torch.unique(torch.cat(subs))
+        memo = getattr(th, "beam_union", None)  # their union, once per selection
+        if memo is None or memo[0] is not subs:
+            th.beam_union = memo = (subs, torch.unique(torch.cat(subs)))
+        pos = memo[1]
         P = torch.zeros(rows.numel(), dtype=state.x.dtype, device=state.x.device)
         return P.index_copy_(0, pos, beam_power_decomposed(th, state, t, rows.index_select(0, pos), comm))
     own = th.owned.index_select(0, rows)
