@@ -1,5 +1,6 @@
 """Host synchronisations: the counter itself, and the budget of a deposition step between
 neighbour rebuilds (what would stop the host on a GPU; counted on the CPU)."""
+import pytest
 import torch
 
 from torchsph.runner import make_simulation, run_steps
@@ -33,11 +34,13 @@ def test_the_counter_sees_every_kind_of_read():
 BUDGET = 2
 
 
-def test_a_deposition_step_between_rebuilds_stays_within_its_sync_budget():
+@pytest.mark.parametrize("window", [0.0, 0.25])  # (the conduction window is decided on host numbers)
+def test_a_deposition_step_between_rebuilds_stays_within_its_sync_budget(window):
     """Melt, beams, feed, losses, surface forces (the wire clear of the substrate): steps
     without a neighbour rebuild read the host at most BUDGET times (the beams, the limits and
     the constants no longer do: 37 before on the preview)."""
-    cfg = small("scene.source_power_W=300.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=3.0e-3")
+    cfg = small("scene.source_power_W=300.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=3.0e-3",
+                f"numerics.conduction_window={window}")
     _, sim = make_simulation(cfg)
     run_steps(sim, steps=60)
     plain = []

@@ -78,7 +78,7 @@ def _defaults(section: str, cfg: dict) -> dict:
 # only how the same neighbour pairs are found.
 STEP_CONTROL = ("numerics.cfl", "numerics.dt_s", "numerics.allow_unstable_dt", "numerics.compile",
                 "numerics.rebalance_every", "numerics.max_compression", "numerics.partial_rebuild",
-                "numerics.migration_slack_over_skin")
+                "numerics.migration_slack_over_skin", "numerics.conduction_window", "numerics.conduction_window_below_K")
 
 
 def _changed(old: dict, cfg: dict) -> list[tuple[str, object, object]]:
@@ -173,7 +173,7 @@ def snapshot(sim) -> dict:
                         "normal": _cpu(getattr(th, "normal", None)), "lit": _cpu(getattr(th, "lit", None)),
                         "zeta_ok": _cpu(th.zeta_ok), "area_ok": _cpu(th.area_ok),
                         "zeta_prev": _cpu(th.zeta_prev), "area_prev": _cpu(th.area_prev),
-                        "normal_prev": _cpu(th.normal_prev)}
+                        "normal_prev": _cpu(th.normal_prev), "slow_mark": th.slow_mark}
     sf = sim.surface_model
     if sf is not None:
         d["surface"] = {"normal": _cpu(sf.normal), "kappa": _cpu(sf.kappa)}
@@ -302,6 +302,7 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
                  "area": "area_cache", "zeta_ok": "zeta_ok", "area_ok": "area_ok", "normal": "normal",
                  "zeta_prev": "zeta_prev", "area_prev": "area_prev", "normal_prev": "normal_prev"}
         caches.update({f"th.{a}": to(c[k]) for k, a in names.items() if c.get(k) is not None})
+        th.slow_mark = c.get("slow_mark")  # the slow rows' window, as it was
     sf = sim.surface_model
     if sf is not None and "surface" in d:
         caches.update({f"sf.{k}": to(v) for k, v in d["surface"].items() if v is not None})

@@ -134,6 +134,12 @@ NUMERICS = {
                                          "rebuild migrates once a particle moved half of it (0 = every rebuild)"),
     "active_tolerance_K": Key("float", default=1.0, gt=0,
                               doc="|T - ambient| below which solid far from heat is left out"),
+    "conduction_window": Key("float", default=0.0, ge=0, le=0.5,
+                             doc="steady solid far from melt, beams and the hot zone sums its conduction pairs "
+                                 "once per window of this share of the thermal limit (0 = every step; one process)"),
+    "conduction_window_below_K": Key("float", default=None, gt=0,
+                                     doc="only solid colder than this waits for the window (default: halfway "
+                                         "from ambient to solidus)"),
 }
 
 RUN = {

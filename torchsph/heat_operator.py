@@ -110,6 +110,99 @@ def rigid_block(ri, rows, nb, mask, x_op, steady, body, kernel: Kernel, h: float
             dwdr_over_r(r2.index_select(0, keep), kernel, h))
 
 
+def sparse_sum(G, row, g, jl, cols, rows, T, m, rho) -> torch.Tensor:
+    """sum_j g_ij V_j (T_i - T_j) on ``rows`` (the particle of each of G's rows) by one product
+    of the CSR matrix ``G`` (columns: the particles ``cols``) with [V, V T]. In a traced step
+    (no sparse tensors there) G's entries (``row``, ``jl``, ``g``) are summed instead."""
+    V_c = m.index_select(0, cols) / rho.index_select(0, cols)
+    X = torch.stack([V_c, V_c * T.index_select(0, cols)], 1)
+    if torch.compiler.is_compiling():
+        u = torch.zeros(rows.numel(), 2, dtype=T.dtype, device=T.device).index_add_(
+            0, row, g.unsqueeze(1) * X.index_select(0, jl))
+    else:
+        u = G @ X
+    return T.index_select(0, rows) * u[:, 0] - u[:, 1]
+
+
+def row_entries(crow: torch.Tensor, rows: torch.Tensor):
+    """The entries of the CSR rows ``rows`` (places), in G's order: (entry, its place in ``rows``,
+    the entries per row), at a cost that follows those entries."""
+    start = crow.index_select(0, rows)
+    cnt = crow.index_select(0, rows + 1) - start
+    total = int(cnt.sum())
+    e_row = torch.repeat_interleave(torch.arange(rows.numel(), device=rows.device), cnt, output_size=total)
+    run0 = torch.cumsum(cnt, 0) - cnt  # row r's run of entries starts at crow[r]
+    e = torch.arange(total, device=rows.device) - run0.index_select(0, e_row) + start.index_select(0, e_row)
+    return e, e_row, cnt
+
+
+class SlowSplit:
+    """G's rows in two sets: the *fast* rows, whose whole rows are summed at every step, and
+    the *slow* ones (steady solid far from the melt, the beams and the hot zone: chosen by
+    :func:`torchsph.thermal.slow_rows`), whose pairs with each other are summed once per
+    window of steps, their sum times the window's length over the step's dt (the step books
+    that rate over the step as any other, so the window's heat enters once). A slow row's
+    pairs with fast rows are summed at every step, each from the fast row's own entry (G is
+    symmetric: g_ij = g_ji), so that every pair's heat leaves one particle as it enters the
+    other, whatever the window: the energy is conserved to round-off.
+
+    Per step: one product of the fast rows' CSR matrix (its own rows and columns) and the
+    boundary entries (fast row, slow column) as a pair list. Once per window: the whole G's
+    product, whose slow rows less the boundary entries' sum are the slow pairs'. Made per
+    build of G, at a cost that follows the fast rows' entries (not G's)."""
+
+    def __init__(self, op: "ConductionOperator", fast: torch.Tensor):
+        """``fast``: (R,) bool over ``op.rows``."""
+        dev = op.rows.device
+        R = op.rows.numel()
+        self.fast = fast
+        self.slow_f = (~fast).to(op.g.dtype)  # 1 on slow rows, 0 on fast ones
+        fr = torch.nonzero(fast).squeeze(1)
+        self.f_at = fr  # the fast rows' places in rows
+        e, e_row, cnt = row_entries(op.crow, fr)
+        total = e.numel()
+        self.e, self.e_row = e, e_row
+        gj = op.g_j.index_select(0, e)
+        used = torch.zeros(op.row_of.shape[0], dtype=torch.bool, device=dev)
+        used[gj] = True
+        self.cols = torch.nonzero(used).squeeze(1)
+        self.jl = (torch.cumsum(used, 0) - 1).index_select(0, gj)
+        crow = torch.zeros(fr.numel() + 1, dtype=torch.long, device=dev)
+        crow[1:] = torch.cumsum(cnt, 0)
+        self.crow = (crow.int(), self.jl.int()) if total < 2**31 - 1 else (crow, self.jl)
+        # the boundary: a fast row's entries whose column is a slow row
+        rj = op.row_of.index_select(0, gj)
+        b = torch.nonzero((rj >= 0) & ~fast.index_select(0, rj.clamp_min(0))).squeeze(1)
+        self.b = b  # places among the fast entries
+        self.b_i = op.rows.index_select(0, fr).index_select(0, e_row.index_select(0, b))  # the fast particle
+        self.b_j = gj.index_select(0, b)  # the slow particle
+        self.b_row = rj.index_select(0, b)  # its place in rows
+        self.R = R
+        self.values(op)
+
+    def values(self, op: "ConductionOperator"):
+        """The fast part's values from G's (after each build of G)."""
+        self.g = op.g.index_select(0, self.e)
+        self.g_b = self.g.index_select(0, self.b)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            self.G = torch.sparse_csr_tensor(*self.crow, self.g, size=(self.f_at.numel(), self.cols.numel()),
+                                             check_invariants=False)
+
+    def apply(self, op: "ConductionOperator", T, m, rho, slow: torch.Tensor | None) -> torch.Tensor:
+        rows_f = op.rows.index_select(0, self.f_at)
+        q_f = sparse_sum(self.G, self.e_row, self.g, self.jl, self.cols, rows_f, T, m, rho)
+        q = torch.zeros(self.R, dtype=T.dtype, device=T.device).index_copy_(0, self.f_at, q_f)
+        i, j = self.b_i, self.b_j  # the slow row's side of each boundary pair: g_ji V_i (T_j - T_i)
+        flow_b = self.g_b * (m.index_select(0, i) / rho.index_select(0, i)) * (T.index_select(0, j) - T.index_select(0, i))
+        q_b = torch.zeros_like(q).index_add_(0, self.b_row, flow_b)
+        q = q + q_b
+        if slow is not None:  # the window's slow pairs: the slow rows' whole sums less their boundary pairs
+            q_all = sparse_sum(op.G, op.g_row, op.g, op.g_jl, op.cols, op.rows, T, m, rho)
+            q = q + slow * (self.slow_f * q_all - q_b)
+        return q
+
+
 class ConductionOperator:
     """Conduction over the rows ``rows`` (positions of the conducting particles).
 
@@ -276,19 +369,18 @@ class ConductionOperator:
                                              check_invariants=False)
         self.built = True
 
-    def apply(self, x, T, k, m, rho, zeta) -> torch.Tensor:
+    split = None  # a :class:`SlowSplit` of G's rows, made after each build (numerics.conduction_window)
+
+    def apply(self, x, T, k, m, rho, zeta, slow: torch.Tensor | None = None) -> torch.Tensor:
         """(div k grad T) on ``rows``: the matrix product plus the moving pairs' sum (the
-        volumes V = m / rho of the particles read only)."""
-        if self.n_static:
-            c = self.cols
-            V_c = m.index_select(0, c) / rho.index_select(0, c)
-            X = torch.stack([V_c, V_c * T.index_select(0, c)], 1)
-            if torch.compiler.is_compiling():  # a traced step has no sparse tensors: G's entries summed
-                u = torch.zeros(self.rows.numel(), 2, dtype=T.dtype, device=T.device).index_add_(
-                    0, self.g_row, self.g.unsqueeze(1) * X.index_select(0, self.g_jl))
-            else:
-                u = self.G @ X
-            q = T.index_select(0, self.rows) * u[:, 0] - u[:, 1]
+        volumes V = m / rho of the particles read only). With a :attr:`split`, G's product on
+        its fast rows and their pairs with slow rows, and with ``slow`` (a 0-d factor: the
+        window's length over this step's dt) the slow rows' pairs with each other, that factor
+        times (:class:`SlowSplit`)."""
+        if self.split is not None and self.n_static:
+            q = self.split.apply(self, T, m, rho, slow)
+        elif self.n_static:
+            q = sparse_sum(self.G, self.g_row, self.g, self.g_jl, self.cols, self.rows, T, m, rho)
         else:
             q = torch.zeros(self.rows.numel(), dtype=T.dtype, device=T.device)
         if self.n_dynamic:

@@ -21,7 +21,7 @@ from .active import ActiveSet
 from .simulation import Simulation
 from .surface import SurfaceForces, SurfaceParams
 from .progress import Progress, projection_lines
-from .config import FLUID, SURFACE, THERMAL
+from .config import FLUID, NUMERICS, SURFACE, THERMAL
 from .schema import params
 from .terms import TermContext, available as available_terms
 
@@ -35,7 +35,9 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
     decomposition (``parallel.slab.SlabComm``); the scene is then built whole on every
     process and cut to this process's slab and halo."""
     keep_freed_blocks()
-    run, nm, fl = cfg["run"], cfg["numerics"], cfg["fluid"]
+    run, fl = cfg["run"], cfg["fluid"]
+    # (a run's config.json from before a numerics key was added: that key at its default)
+    nm = {**{k: key.default for k, key in NUMERICS.items()}, **cfg["numerics"]}
     dtype = DTYPES[run["dtype"]] if dtype is None else dtype
     device = run["device"] if device is None else device
     if scene is None:
@@ -68,6 +70,11 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
         losses = params(SurfaceLosses, th, THERMAL)
         thermal = Conduction(tp, kernel, h, scene.domain, k, compile=compile, beams=beams, dx=scene.dx,
                              losses=losses, h_over_dx=nm["h_over_dx"], colour=colour)
+        thermal.window = nm["conduction_window"]
+        below = nm["conduction_window_below_K"]
+        if below is None and tp.latent_heat > 0:
+            below = losses.ambient + 0.5 * (tp.solidus - losses.ambient)
+        thermal.slow_below = math.inf if below is None else below
     surface = None
     if "surface" in cfg and fluid is not None:
         sp = params(SurfaceParams, cfg["surface"], SURFACE)

@@ -26,7 +26,7 @@ from .phases import PhaseChange
 from .state import ParticleState, Phase
 from .stats import PlanStats
 from .surface import SurfaceForces
-from .thermal import Conduction, stored_energy
+from .thermal import Conduction, slow_factor, stored_energy
 
 
 class Simulation:
@@ -292,7 +292,10 @@ class Simulation:
             else:
                 Hh = (whole_H_half() if H_half is None else H_half).index_select(0, rows)
             th.prepare(self.state)  # a new selection's cached values, outside the traced parts
+            f = slow_factor(th, self.t, dt, self.pre_limits)  # the slow rows' window closes (host numbers)
+            th.slow_now = None if f is None else scalar(f)
             ending = step.close_energy(self, dt_t, scalar(self.t + dt), rows, Hh)  # 2, 3b
+            th.slow_now = None
         self.t += dt
         self.step += 1
         flags = bookkeeping.finish_step(self, dt, ending)

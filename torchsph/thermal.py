@@ -17,7 +17,7 @@ import torch
 from .fluid import embed, gather_nb, pair_geometry
 from .free_surface import ColourGradient, colour_gradient_pairs  # noqa: F401 (re-exported)
 from .beam import beam_power, beams_power, in_beam, reachable
-from .heat_operator import ConductionOperator
+from .heat_operator import ConductionOperator, SlowSplit, row_entries
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import ParticleState, Phase
@@ -471,6 +471,7 @@ class Conduction:
             self.zeta_cache = self.zeta(state)
         if not self.op.built:  # once per selection, when zeta is known
             self.op.build(self.k, self.zeta_cache, self.k_summary()[1])
+            split_operator(self, state)
         if self.losses.active:  # the surface rows, made here outside the traced part of the step
             surface_rows(self, state)
 
@@ -478,7 +479,7 @@ class Conduction:
         """div(k grad T) (W/m^3) on ``rows`` only."""
         T = self.wall_temperature(state, T)
         self.prepare(state)
-        q = self.op.apply(state.x, T, self.k, state.m, state.rho, self.zeta_cache)
+        q = self.op.apply(state.x, T, self.k, state.m, state.rho, self.zeta_cache, self.slow_now)
         return q if self.op.at is None else T.new_zeros(self.rows.shape).index_copy_(0, self.op.at, q)
 
     def zeta(self, state: ParticleState) -> torch.Tensor:
@@ -540,6 +541,10 @@ class Conduction:
         return embed(rows, self.beam_power_rows(state, t, rows), state.n)
 
     beam_rows = None  # per beam: the positions in ``rows`` that it can reach until the next build
+    window = 0.0  # numerics.conduction_window: the slow rows' window, a share of the thermal limit (0: none)
+    slow_below = math.inf  # slow rows are colder than this (K)
+    slow_mark = None  # the process time the slow rows' current window began at
+    slow_now = None  # this step's window factor (a 0-d tensor), or None: the slow pairs wait
     refreeze_limit = 0.02  # share of G's rows re-solidified (not in G) at which G is made anew
     provisional = False  # steady set guessed (arrays not carried): G is made anew at the next build
 
@@ -625,6 +630,54 @@ class Conduction:
         if self.rows.numel():
             r = torch.minimum(state.rho.index_select(0, self.rows).min(), r)
         return r if not self.rows_w.numel() else torch.minimum(r, state.rho.index_select(0, self.rows_w).min())
+
+
+def slow_rows(th, state: ParticleState) -> torch.Tensor:
+    """(R,) bool over the operator's rows: the rows whose pairs with each other wait for the
+    window (:class:`~torchsph.heat_operator.SlowSplit`). Slow: steady solid of one rigid body
+    with its neighbours (not next to melt: rigid), no moving pair, not lit by a beam, colder
+    than ``slow_below``, and no row with one of these (one neighbour's width around the fast
+    ones: the steep gradients at the hot zone's edge are summed every step)."""
+    op = th.op
+    n = state.n
+    cand = th.rigid & th.steady & (state.T < th.slow_below)
+    lit = getattr(th, "lit", None)
+    if lit is not None and lit.shape[0] == n:
+        cand = cand & ~lit
+    slow = cand.index_select(0, op.rows)
+    if op.n_dynamic:
+        slow = slow.index_fill(0, op.d_row, False)
+    fr = torch.nonzero(~slow).squeeze(1)
+    e, _, _ = row_entries(op.crow, fr)
+    near = op.row_of.index_select(0, op.g_j.index_select(0, e))
+    return (~slow).index_fill(0, near[near >= 0], True)
+
+
+def split_operator(th, state: ParticleState):
+    """With a window (``numerics.conduction_window`` > 0, one process): G's fast and slow rows
+    (:func:`slow_rows`), made after each build of G. A decomposed run sums every row at every
+    step (its ghosts' rows are their owners')."""
+    op = th.op
+    comm = getattr(th, "comm", None)
+    if th.window <= 0 or op.at is not None or (comm is not None and comm.size > 1) or not op.n_static:
+        op.split = None
+        return
+    op.split = SlowSplit(op, slow_rows(th, state))
+
+
+def slow_factor(th, t: float, dt: float, limits: dict) -> float | None:
+    """The slow rows' window (host numbers, no read): None while it is open, else its length
+    over this step's dt, and the next window begins. A window closes at the step after which
+    one more step would take it past ``window`` times the thermal limit (3.17)."""
+    if th.window <= 0:
+        return None
+    if th.slow_mark is None:
+        th.slow_mark = t
+    elapsed = t + dt - th.slow_mark
+    if elapsed + dt <= th.window * limits.get("thermal", math.inf):
+        return None
+    th.slow_mark = t + dt
+    return elapsed / dt
 
 
 def operator_rows(th) -> torch.Tensor:
