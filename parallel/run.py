@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -136,6 +137,9 @@ class SlabRun(SerialRun):
         self.root = self.comm.rank == 0
 
     def make(self, cfg):
+        if self.root and self.ranks > 1 and cfg["numerics"].get("conduction_window", 0.0) > 0:
+            print("torchsph: numerics.conduction_window is one process's: the ranks sum every conducting row at "
+                  "every step (the same physics within the window's error, without its saving)", file=sys.stderr)
         return make_simulation(cfg, comm=self.comm)
 
     def recorded(self, restart):

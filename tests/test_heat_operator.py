@@ -101,7 +101,8 @@ def test_operator_through_a_deposition_run():
     """Melt, two moving bodies (wire and substrate), fed layers, partial neighbour rebuilds
     with the active set, phase changes: equal to the pair sum at every step; the matrix holds
     most pairs (what makes it cheap) and is built once per selection, not per step."""
-    cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3")
+    cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3",
+                "numerics.conduction_window=0.0")  # (every pair every step: compared with the pair sum)
     _, sim = make_simulation(cfg)
     rec = checking(sim)
     run_steps(sim, steps=250)
@@ -149,7 +150,8 @@ def test_a_checkpoint_without_the_operators_arrays_gets_the_matrix_back_at_the_n
     from torchsph import checkpoint as ckpt
     from torchsph.runner import resume
 
-    cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3")
+    cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3",
+                "numerics.conduction_window=0.0")  # (every pair every step: compared with the pair sum)
     _, sim = make_simulation(cfg)
     run_steps(sim, steps=60)
     d = ckpt.snapshot(sim)
@@ -226,7 +228,8 @@ def test_rigid_marks_from_the_few_rows_equal_every_rows_own():
     equal the marks read from every working row, through a deposition run with melt, a fed
     wire and partial rebuilds, at every selection."""
     from torchsph.thermal import rigid_marks, rigid_marks_direct
-    cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3")
+    cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3",
+                "numerics.conduction_window=0.0")  # (every pair every step: compared with the pair sum)
     _, sim = make_simulation(cfg)
     seen = {"checks": 0, "fluid": 0}
     orig = sim.select_pairs

@@ -34,7 +34,8 @@ WETTING = (ROOT / "cases" / "sessile_drop_2d", ["surface.contact_angle_deg=30.0"
 # the owning rank, copied as ghosts), the active set, melting; the slab boundary cuts the wire
 DEPOSITION = (ROOT / "cases" / "perpendicular_350W",
               ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[3.0e-3, 3.0e-3, 1.0e-3]", "scene.wire_offset_m=1.5e-3",
-               "scene.wire_length_m=1.0e-3", "scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1"], 300)
+               "scene.wire_length_m=1.0e-3", "scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1",
+               "numerics.conduction_window=0.0"], 300)  # (one process's: the ranks sum every row every step)
 
 # the case names [solid_contact] (melt repelled from solid across the slab boundary; a rank may own
 # no melt: its contact pairs are empty), against approach only; here the spring alone, whose force
@@ -44,7 +45,7 @@ CONTACT = (DEPOSITION[0], DEPOSITION[1] + ["solid_contact.approach_over_c0=0.0"]
 # the wire stalls on the substrate (no sources: it arrives unmelted and rests there); the
 # stall is decided on every rank together
 STALL = (ROOT / "cases" / "perpendicular_350W",
-         DEPOSITION[1][:4] + ["scene.wire_gap_m=0.1e-3", "scene.wire_feed_m_s=0.03", "scene.source_layout=\"none\"",
+         DEPOSITION[1][:4] + ["numerics.conduction_window=0.0", "scene.wire_gap_m=0.1e-3", "scene.wire_feed_m_s=0.03", "scene.source_layout=\"none\"",
                               "scene.wire_stall=true"], 20)
 
 
@@ -112,7 +113,8 @@ def test_decomposed_run_equals_single_process(tmp_path, which):
 # wire's velocity, and a checkpoint (rank 0's copy) lost the wire's row
 COLD_HALF = (ROOT / "cases" / "perpendicular_350W",
              ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[14.0e-3, 3.0e-3, 1.0e-3]", "scene.wire_offset_m=1.25e-3",
-              "scene.wire_length_m=1.0e-3", "scene.wire_gap_m=0.5e-3", "scene.wire_feed_m_s=0.05"], 0)
+              "scene.wire_length_m=1.0e-3", "scene.wire_gap_m=0.5e-3", "scene.wire_feed_m_s=0.05",
+              "numerics.conduction_window=0.0"], 0)
 
 
 @pytest.mark.parametrize("which", ["fluid", "deposition", "cold_half"])

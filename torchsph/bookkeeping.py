@@ -175,7 +175,8 @@ def finish_step(sim, dt: float, ending: EndTemperatures | None = None) -> dict:
     while True:
         extra = {"T_bad": ending.inv.bad.any()} if check else {}
         if pc is not None:
-            melt, freeze, counts = pc.decide(sim)
+            part = ending is not None and ending.rows is sim.thermal.step_rows  # (between windows: the rows integrated)
+            melt, freeze, counts = pc.decide(sim, ending.rows if part else None)
             undo = pc.drag(sim, dt)
             extra |= {"melt": counts[0], "freeze": counts[1]}
         sim.comm.end_step(sim)

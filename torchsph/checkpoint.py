@@ -144,6 +144,33 @@ def _cpu(t):
     return t.detach().cpu() if isinstance(t, torch.Tensor) else t
 
 
+def window_state(th, n: int) -> dict:
+    """The conduction window's split as the run has it (per particle: the fast rows, the rows a
+    step between windows integrates) and whether the next step integrates those only: a
+    restart makes the same split and takes the same step."""
+    op = th.op
+    sp = op.split if op is not None else None
+    out = {"partial_next": th.partial_next}
+    if sp is not None:
+        out["fast"] = _cpu(torch.zeros(n, dtype=torch.bool, device=op.rows.device).index_fill_(
+            0, op.rows.index_select(0, torch.nonzero(sp.fast).squeeze(1)), True))
+    if th.int_rows is not None and th.int_rows_for is th.rows:
+        out["int_rows"] = _cpu(torch.zeros(n, dtype=torch.bool, device=th.rows.device).index_fill_(0, th.int_rows, True))
+    return out
+
+
+def restore_window(th, c: dict, to):
+    """Put :func:`window_state` back (after the restore's selection)."""
+    th.partial_next = bool(c.get("partial_next", False))
+    th.restored_fast = to(c["fast"]) if c.get("fast") is not None else None
+    if c.get("int_rows") is not None:
+        keep = to(c["int_rows"])
+        th.int_rows = th.rows.index_select(0, torch.nonzero(keep.index_select(0, th.rows)).squeeze(1))
+        th.int_rows_for = th.rows
+    else:
+        th.partial_next = False
+
+
 def snapshot(sim) -> dict:
     """The run's full state as a dict of CPU tensors and numbers."""
     s = sim.state
@@ -173,7 +200,7 @@ def snapshot(sim) -> dict:
                         "normal": _cpu(getattr(th, "normal", None)), "lit": _cpu(getattr(th, "lit", None)),
                         "zeta_ok": _cpu(th.zeta_ok), "area_ok": _cpu(th.area_ok),
                         "zeta_prev": _cpu(th.zeta_prev), "area_prev": _cpu(th.area_prev),
-                        "normal_prev": _cpu(th.normal_prev), "slow_mark": th.slow_mark}
+                        "normal_prev": _cpu(th.normal_prev), "slow_mark": th.slow_mark, **window_state(th, s.n)}
     sf = sim.surface_model
     if sf is not None:
         d["surface"] = {"normal": _cpu(sf.normal), "kappa": _cpu(sf.kappa)}
@@ -309,6 +336,8 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     caches.update({k: to(v) for k, v in d.get("terms", {}).items() if v is not None})
     # pair subsets anew (a function of the table and the phases), the caches as they were
     sim.rearm(caches)
+    if th is not None and "thermal" in d:
+        restore_window(th, d["thermal"], to)
     torch.set_rng_state(d["rng"])
     sim.info = sim.measure()
     return {**d.get("extra", {}), "step_control_changes": changes}

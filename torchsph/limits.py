@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .thermal import evaporation_limit
+from .thermal import evaporation_limit, live_rows
 
 
 class SimulationError(RuntimeError):
@@ -139,11 +139,12 @@ def heating_limit(sim):
     one go meets a loss that is exponentially stiff there (a 1 200 W beam on the cube
     produced a non-finite temperature on the second step at the thermal limit). A 0-d
     float64 tensor."""
-    th = sim.thermal  # dh/dt is 0 off the rows (walls and the cold solid left out)
-    if not th.rows.numel():
+    th = sim.thermal  # dh/dt is 0 off the rows (walls and the cold solid left out; frozen rows between windows)
+    rows = live_rows(th)
+    if not rows.numel():
         return math.inf
-    rate = sim.dTdt.index_select(0, th.rows).abs()
-    r = (rate / (th.prm.specific_heat * sim.state.T.index_select(0, th.rows).clamp_min(1.0))).max().double()
+    rate = sim.dTdt.index_select(0, rows).abs()
+    r = (rate / (th.prm.specific_heat * sim.state.T.index_select(0, rows).clamp_min(1.0))).max().double()
     return torch.where(r > 0, 0.1 / r, torch.full_like(r, math.inf))
 
 

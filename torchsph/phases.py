@@ -28,11 +28,13 @@ class PhaseChange:
     T_L: float  # liquidus (K): solid above it melts
     C: float  # mushy-zone drag (1/s)
 
-    def decide(self, sim):
+    def decide(self, sim, rows=None):
         """(the particles that melt, those that freeze, as masks over the conducting rows,
         their counts as a device tensor). Only the rows' temperatures change in a step, so
-        only they are read (a decomposition's ghosts take their owners' decisions)."""
-        s, rows = sim.state, sim.thermal.rows
+        only they are read (``rows``: the rows whose temperatures the step's end set, default
+        every conducting row; a decomposition's ghosts take their owners' decisions)."""
+        s = sim.state
+        rows = sim.thermal.rows if rows is None else rows
         phase, T = s.phase.index_select(0, rows), s.T.index_select(0, rows)
         melt = (phase == Phase.SOLID) & (T > self.T_L)
         freeze = (phase == Phase.FLUID) & (T < self.T_S)

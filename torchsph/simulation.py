@@ -26,7 +26,7 @@ from .phases import PhaseChange
 from .state import ParticleState, Phase
 from .stats import PlanStats
 from .surface import SurfaceForces
-from .thermal import Conduction, slow_factor, stored_energy
+from .thermal import Conduction, end_rows, live_rows, slow_factor, start_step, stored_energy
 
 
 class Simulation:
@@ -226,6 +226,8 @@ class Simulation:
         self.comm.begin_step(self)  # migration and new ghosts after a rebuild (decomposed runs)
         self.rebuilt = False
         self.T_prev = self.state.T
+        th = self.thermal
+        rows_start = start_step(th) if th is not None else None  # between windows, the frozen rows wait
         def scalar(v: float) -> torch.Tensor:  # a 0-d tensor for the traced parts (a fill: no copy, no read)
             return torch.full((), v, dtype=torch.float64, device=self.state.device)
         dt_t = scalar(dt)
@@ -284,21 +286,22 @@ class Simulation:
             fr, vt_f = fr_half, half.vt_f
             v_tilde = lambda: self.state.v.index_copy(0, fr, vt_f)  # noqa: E731
         ending = None
-        if self.thermal is not None:  # the rows of the end's temperatures, and their h_{n+1/2}
-            th = self.thermal
-            rows = th.rows if th.rows is rows0 else torch.unique(torch.cat([rows0, th.rows]))
+        if th is not None:  # the rows of the end's temperatures, and their h_{n+1/2}
+            th.prepare(self.state)  # a new selection's cached values, outside the traced parts
+            f = slow_factor(th, self.t, dt, self.pre_limits)  # the slow rows' window closes (host numbers)
+            th.slow_now, th.closed = (None, False) if f is None else (scalar(f), True)
+            rows = end_rows(th, rows0, rows_start)
             if H_half is None and rows is rows0:
                 Hh = H_half_r
             else:
                 Hh = (whole_H_half() if H_half is None else H_half).index_select(0, rows)
-            th.prepare(self.state)  # a new selection's cached values, outside the traced parts
-            f = slow_factor(th, self.t, dt, self.pre_limits)  # the slow rows' window closes (host numbers)
-            th.slow_now = None if f is None else scalar(f)
             ending = step.close_energy(self, dt_t, scalar(self.t + dt), rows, Hh)  # 2, 3b
             th.slow_now = None
         self.t += dt
         self.step += 1
         flags = bookkeeping.finish_step(self, dt, ending)
+        if th is not None:
+            th.partial_next, th.closed = not self.heat_terms and live_rows(th) is th.int_rows, False
         diagnosis.check_finite(self, v_tilde, dt, limit, flags.get("T_ok"))
         self.plan.add(self)
         if self.active_set is not None:

@@ -62,7 +62,8 @@ def first_half(sim, dt: torch.Tensor) -> Half:
     rows0 = H_half_r = inv = None
     if sim.thermal is not None:  # the energy equation in specific enthalpy h(T)
         th = sim.thermal
-        rows0 = th.rows  # integrated particles (not walls; only the active set when skipping)
+        rows0 = th.rows if th.step_rows is None else th.step_rows  # integrated particles (not walls; only the
+        # active set when skipping; between windows of the conduction window, not its frozen rows)
         T0, a_r = s.T, sim.dTdt.index_select(0, rows0)
         H_r = th.to_enthalpy(T0.index_select(0, rows0))
         H_half_r = H_r + 0.5 * dt * a_r  # 1d on the rows (dh/dt = 0 off them: H_half = h(T) there)

@@ -474,6 +474,8 @@ class Conduction:
             split_operator(self, state)
         if self.losses.active:  # the surface rows, made here outside the traced part of the step
             surface_rows(self, state)
+        if self.int_rows_for is not self.rows or (self.op.split is not None and self.int_rows is None):
+            integrated_rows(self)
 
     def heat_rate_rows(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
         """div(k grad T) (W/m^3) on ``rows`` only."""
@@ -541,10 +543,12 @@ class Conduction:
         return embed(rows, self.beam_power_rows(state, t, rows), state.n)
 
     beam_rows = None  # per beam: the positions in ``rows`` that it can reach until the next build
-    window = 0.0  # numerics.conduction_window: the slow rows' window, a share of the thermal limit (0: none)
-    slow_below = math.inf  # slow rows are colder than this (K)
-    slow_mark = None  # the process time the slow rows' current window began at
-    slow_now = None  # this step's window factor (a 0-d tensor), or None: the slow pairs wait
+    # the conduction window (numerics.conduction_window, 0: none; slow rows colder than slow_below), its start,
+    # this step's factor (0-d, None: the slow pairs wait), closed in this step; :func:`integrated_rows`, and
+    # its rows; this step's (:func:`start_step`); the next may take int_rows only; a checkpoint's fast rows
+    window, slow_below, slow_mark, slow_now, closed = 0.0, math.inf, None, None, False
+    int_rows = int_rows_for = step_rows = restored_fast = None
+    partial_next = False
     refreeze_limit = 0.02  # share of G's rows re-solidified (not in G) at which G is made anew
     provisional = False  # steady set guessed (arrays not carried): G is made anew at the next build
 
@@ -659,10 +663,66 @@ def split_operator(th, state: ParticleState):
     step (its ghosts' rows are their owners')."""
     op = th.op
     comm = getattr(th, "comm", None)
+    th.int_rows = th.int_rows_for = None  # (made anew after the surface rows: integrated_rows)
+    fast, th.restored_fast = th.restored_fast, None
     if th.window <= 0 or op.at is not None or (comm is not None and comm.size > 1) or not op.n_static:
         op.split = None
         return
-    op.split = SlowSplit(op, slow_rows(th, state))
+    if fast is not None and fast.shape[0] == state.n:  # a restart: the rows as the run had them
+        fast = fast.index_select(0, op.rows)
+    else:
+        fast = slow_rows(th, state)
+    op.split = SlowSplit(op, fast)
+
+
+def integrated_rows(th):
+    """The rows a step between windows integrates (``int_rows``; None: all): every row but the
+    *frozen* ones, slow rows whose heat between windows is zero (no pair with a fast row, no
+    surface loss, no beam that can reach them): their enthalpy and temperature do not change
+    until the window closes, so the step's passes over the rows (the half kicks, h(T) and its
+    inversion, the phase test, the heating limit) skip them. Made after the split and the
+    surface rows, at each selection's first evaluation."""
+    sp = th.op.split if th.op is not None else None
+    th.int_rows, th.int_rows_for = None, th.rows
+    if sp is None:
+        return
+    keep = sp.fast.index_fill(0, sp.b_row, True)
+    memo = th.surface_memo
+    if th.losses.active and memo is not None and memo[0] is th.rows:
+        keep = keep.index_fill(0, memo[2], True)
+    for b in th.beam_rows or ():
+        keep = keep.index_fill(0, b, True)
+    th.int_rows = th.rows.index_select(0, torch.nonzero(keep).squeeze(1))
+
+
+def start_step(th) -> torch.Tensor:
+    """At a step's start: the rows its first half integrates (``step_rows``: ``int_rows`` where the
+    last step allows, else None: every row). Returns the rows as the step begins."""
+    th.step_rows = th.int_rows if th.partial_next and th.int_rows_for is th.rows else None
+    return th.rows
+
+
+def live_rows(th) -> torch.Tensor:
+    """The rows whose dh/dt may be non-zero after this step: ``int_rows`` while they hold (no
+    window closed in the step, no selection since they were made), else every row."""
+    ok = (th.int_rows is not None and th.int_rows_for is th.rows and th.op is not None and th.op.built
+          and not th.closed)
+    return th.int_rows if ok else th.rows
+
+
+def end_rows(th, rows0: torch.Tensor, rows_start: torch.Tensor) -> torch.Tensor:
+    """The rows whose temperatures a step's end inverts: those its first half integrated
+    (``rows0``) where the rest of the step heats no other row, else every row (``rows0`` and
+    the rows of now, where a rebuild changed them since the step began: ``rows_start``)."""
+    if th.rows is rows0:
+        return rows0
+    i = th.int_rows
+    if (not th.closed and i is not None and th.int_rows_for is th.rows
+            and (i is rows0 or (i.shape == rows0.shape and bool(torch.equal(i, rows0))))):
+        return rows0  # (the read where a selection made them anew: at a rebuild, not per step)
+    if th.rows is rows_start and rows0 is th.step_rows:  # rows0: a subset of the unchanged rows
+        return th.rows
+    return torch.unique(torch.cat([rows0, th.rows]))
 
 
 def slow_factor(th, t: float, dt: float, limits: dict) -> float | None:

@@ -2,7 +2,7 @@
 tree ``--tree`` (this repository, or a reference commit's worktree). Prints one JSON line.
 
     python scripts/tools/bench_deposition_driver.py --tree DIR preview --checkpoint CK [--steps N]
-    python scripts/tools/bench_deposition_driver.py --tree DIR full [--steps N]
+    python scripts/tools/bench_deposition_driver.py --tree DIR full [--steps N] [--set key=value ...]
 
 It uses only what every version since b14e316 offers (``load_case``, ``make_simulation``,
 ``simulation_from_run``, ``run_steps``) and counts host synchronisations with this
@@ -78,6 +78,7 @@ def main():
     ap.add_argument("what", choices=("preview", "full"))
     ap.add_argument("--checkpoint", type=Path, default=None)
     ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="full: a case key, key=value")
     a = ap.parse_args()
     os.environ["OMP_NUM_THREADS"] = "1"
     sys.path.insert(0, str(a.tree.resolve()))
@@ -99,7 +100,7 @@ def main():
         case = a.tree / "cases" / "perpendicular_350W"
         ov = (["surface.wetting=false"] if "wetting" in SURFACE else []) + (
             ["solid_contact.enabled=false"] if "[solid_contact]" in (case / "case.toml").read_text() else [])
-        _, cfg = load_case(case, ov)
+        _, cfg = load_case(case, ov + a.overrides)
         _, sim = make_simulation(cfg)
     setup = time.perf_counter() - t0
     n0 = sim.state.n

@@ -1,7 +1,7 @@
 """Per-step profile of the solver: where one time step spends its time.
 
     python scripts/tools/profile_step.py [CASE_DIR] [--steps N] [--compile] [--set key=value ...]
-    python scripts/tools/profile_step.py --restart RUN_DIR/checkpoint.pt [--steps N]
+    python scripts/tools/profile_step.py --restart RUN_DIR/checkpoint.pt [--steps N] [--set numerics.KEY=VALUE]
 
 With ``--restart`` the step is profiled in the state of a run's checkpoint (the case is the
 run's own ``config.json``), e.g. late in a deposition run, where the melt pool, the fed
@@ -36,7 +36,10 @@ def main():
     a = ap.parse_args()
     if a.restart is not None:
         from torchsph.runner import simulation_from_run
-        cfg, sim = simulation_from_run(a.restart, compile=a.compile)
+        import tomllib  # (--set numerics.KEY=VALUE: the step-control keys a restart may change)
+        nm = {o.split("=", 1)[0].removeprefix("numerics."): tomllib.loads("v = " + o.split("=", 1)[1])["v"]
+              for o in a.overrides}
+        cfg, sim = simulation_from_run(a.restart, numerics=nm, compile=a.compile)
     else:
         _, cfg = load_case(a.case, a.overrides)
         _, sim = make_simulation(cfg, compile=a.compile)
