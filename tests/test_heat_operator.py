@@ -114,13 +114,26 @@ def test_operator_through_a_deposition_run():
     assert rec["carried"] > 0, rec  # (and each equal to the build made afresh)
 
 
+def restarts_bit_for_bit(sim, cfg, tmp_path, K: int = 30):
+    """A checkpoint of ``sim`` now, then K steps of it and K of a restart from the checkpoint: equal bit for bit."""
+    from torchsph import checkpoint as ckpt
+    from torchsph.runner import resume
+
+    path = tmp_path / "checkpoint.pt"
+    ckpt.save(sim, path, ckpt.config_hash(cfg))
+    run_steps(sim, steps=K)
+    _, other = make_simulation(cfg)
+    resume(other, path, cfg)
+    run_steps(other, steps=K)
+    for name in ("x", "v", "rho", "T", "phase", "body"):
+        assert torch.equal(getattr(sim.state, name), getattr(other.state, name)), name
+
+
 def test_restart_between_a_freeze_and_the_next_build_is_bit_for_bit(tmp_path):
     """A checkpoint written while a refrozen particle is solid but not yet steady (it froze
     since the last neighbour build, away from the build's positions): the restart rebuilds the
     operator from the checkpoint (the build's positions and which particles are steady), so
     K more steps equal the uninterrupted run's bit for bit."""
-    from torchsph import checkpoint as ckpt
-    from torchsph.runner import resume
 
     cfg, sim = hot_spot_block()
     for _ in range(400):
@@ -130,15 +143,7 @@ def test_restart_between_a_freeze_and_the_next_build_is_bit_for_bit(tmp_path):
             break
     else:
         raise AssertionError("no particle froze between neighbour builds")
-    path = tmp_path / "checkpoint.pt"
-    ckpt.save(sim, path, ckpt.config_hash(cfg))
-    K = 30
-    run_steps(sim, steps=K)
-    _, other = make_simulation(cfg)
-    resume(other, path, cfg)
-    run_steps(other, steps=K)
-    for name in ("x", "v", "rho", "T", "phase", "body"):
-        assert torch.equal(getattr(sim.state, name), getattr(other.state, name)), name
+    restarts_bit_for_bit(sim, cfg, tmp_path)
 
 
 def test_a_checkpoint_without_the_operators_arrays_gets_the_matrix_back_at_the_next_build(tmp_path):
@@ -314,8 +319,6 @@ def test_a_window_waits_and_conserves_energy_and_a_restart_inside_it_is_bit_for_
     """With the window on, the slow pairs are summed on few steps (the window spans several
     acoustic steps), the energy balance closes to round-off, and a checkpoint written while a
     window is open restarts bit for bit (the window's start is carried)."""
-    from torchsph import checkpoint as ckpt
-    from torchsph.runner import resume
     from torchsph import thermal
 
     cfg = windowed()
@@ -339,12 +342,4 @@ def test_a_window_waits_and_conserves_energy_and_a_restart_inside_it_is_bit_for_
     assert sim.energy_balance()["residual_rel"] < 1e-12
     while sim.thermal.slow_mark == sim.t:  # inside a window
         run_steps(sim, steps=1)
-    path = tmp_path / "checkpoint.pt"
-    ckpt.save(sim, path, ckpt.config_hash(cfg))
-    K = 30
-    run_steps(sim, steps=K)
-    _, other = make_simulation(cfg)
-    resume(other, path, cfg)
-    run_steps(other, steps=K)
-    for name in ("x", "v", "rho", "T", "phase", "body"):
-        assert torch.equal(getattr(sim.state, name), getattr(other.state, name)), name
+    restarts_bit_for_bit(sim, cfg, tmp_path)
