@@ -343,3 +343,27 @@ def test_a_window_waits_and_conserves_energy_and_a_restart_inside_it_is_bit_for_
     while sim.thermal.slow_mark == sim.t:  # inside a window
         run_steps(sim, steps=1)
     restarts_bit_for_bit(sim, cfg, tmp_path)
+
+
+def test_the_changed_entries_found_from_the_rows_are_those_of_the_whole_pass():
+    """A build after the first finds the entries with a changed particle from the changed
+    particles' rows and their partners' (a binary search in each partner's row), not by a pass
+    over every entry: the same entries, for none, a few and many changed particles, and a
+    changed particle that is a column without a row (the whole pass)."""
+    from torchsph.heat_operator import changed_entries
+
+    _, sim = make_simulation(small("scene.source_power_W=150.0", "numerics.conduction_window=0.0"))
+    run_steps(sim, steps=20)
+    op = sim.thermal.op
+    n = sim.state.n
+    gen = torch.Generator().manual_seed(3)
+    rowless = torch.nonzero(op.row_of.index_select(0, op.cols) < 0).squeeze(1)
+    masks = [torch.zeros(n, dtype=torch.bool)] + [torch.rand(n, generator=gen) < f for f in (0.001, 0.05, 0.5)]
+    if rowless.numel():  # (cold solid read but not integrated, at the active set's edge)
+        masks.append(torch.zeros(n, dtype=torch.bool).index_fill_(0, op.cols[rowless[:1]], True))
+    walls = torch.nonzero(op.row_of < 0).squeeze(1)  # particles that are no row (walls, cold solid)
+    masks.append(torch.zeros(n, dtype=torch.bool).index_fill_(0, walls[:5], True) | masks[2])
+    assert op.n_static > 1000
+    for ch in masks:
+        whole = torch.nonzero(ch.index_select(0, op.g_i) | ch.index_select(0, op.g_j)).squeeze(1)
+        assert torch.equal(changed_entries(op, ch), whole)

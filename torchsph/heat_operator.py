@@ -136,6 +136,50 @@ def row_entries(crow: torch.Tensor, rows: torch.Tensor):
     return e, e_row, cnt
 
 
+def csr_find(crow: torch.Tensor, jl: torch.Tensor, rows: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """The first entry of each CSR row ``rows`` whose column (``jl``, ascending within a row) is not
+    below ``c``: a binary search of all rows at once."""
+    lo, hi = crow.index_select(0, rows), crow.index_select(0, rows + 1)
+    top = max(jl.numel() - 1, 0)
+    for _ in range(64):  # (each round halves every row's bracket)
+        act = lo < hi
+        if not bool(act.any()):
+            break
+        mid = torch.div(lo + hi, 2, rounding_mode="floor")
+        less = jl.index_select(0, mid.clamp_max(top)) < c
+        lo = torch.where(act & less, mid + 1, lo)
+        hi = torch.where(act & ~less, mid, hi)
+    return lo
+
+
+def changed_entries(op: "ConductionOperator", ch: torch.Tensor) -> torch.Tensor:
+    """G's entries (ascending) with a particle in ``ch`` (per particle), as the whole pass
+    ``ch[i] | ch[j]`` over the entries finds them, at a cost that follows the changed particles:
+    the entries of their rows, and, G being symmetric in its rows, their partners' entries in
+    their columns (found by :func:`csr_find`). A changed particle that is a column without a
+    row (or an entry not found) takes the whole pass."""
+    p = torch.nonzero(ch).squeeze(1)
+    whole = lambda: torch.nonzero(ch.index_select(0, op.g_i) | ch.index_select(0, op.g_j)).squeeze(1)  # noqa: E731
+    if p.numel() == 0:
+        return p
+    C = op.cols.numel()
+    r = op.row_of.index_select(0, p)
+    col = torch.searchsorted(op.cols, p).clamp_max(max(C - 1, 0))
+    is_col = (op.cols.index_select(0, col) == p) if C else torch.zeros_like(r, dtype=torch.bool)
+    if bool((is_col & (r < 0)).any()):
+        return whole()
+    has = torch.nonzero(r >= 0).squeeze(1)
+    e1, e_row, _ = row_entries(op.crow, r.index_select(0, has))
+    partner = op.row_of.index_select(0, op.g_j.index_select(0, e1))
+    q = torch.nonzero(partner >= 0).squeeze(1)
+    c = col.index_select(0, has).index_select(0, e_row.index_select(0, q))
+    e2 = csr_find(op.crow, op.g_jl, partner.index_select(0, q), c)
+    found = e2 < op.crow.index_select(0, partner.index_select(0, q) + 1)
+    if not bool(found.all()) or not bool((op.g_jl.index_select(0, e2) == c).all()):
+        return whole()
+    return torch.unique(torch.cat([e1, e2]))
+
+
 class SlowSplit:
     """G's rows in two sets: the *fast* rows, whose whole rows are summed at every step, and
     the *slow* ones (steady solid far from the melt, the beams and the hot zone: chosen by
@@ -345,19 +389,20 @@ class ConductionOperator:
         makes only the entries with a particle whose k, zeta or steady flag changed (the
         others' values are functions of unchanged inputs: the same bits). ``k1``: k's one
         value where all are equal (:func:`entry_material`)."""
-        i, j = self.g_i, self.g_j
         prev = self.built_from
         if prev is not None and prev[1].shape == zeta.shape and prev[0].shape == k.shape:
             k0, z0, s0 = prev
             ch = (zeta != z0) | (self.steady != s0)
             if k is not k0:
                 ch = ch | (k != k0)
-            redo = torch.nonzero(ch.index_select(0, i) | ch.index_select(0, j)).squeeze(1)
-            ri, rj = i.index_select(0, redo), j.index_select(0, redo)
+            redo = changed_entries(self, ch)
+            ri = self.rows.index_select(0, self.g_row.index_select(0, redo))
+            rj = self.g_j.index_select(0, redo)
             live = self.steady.index_select(0, ri) & self.steady.index_select(0, rj)
             gr = entry_material(k, zeta, ri, rj, k1) * self.g_f.index_select(0, redo)
             g = self.g.index_copy_(0, redo, torch.where(live, gr, torch.zeros_like(gr)))  # (G is made anew from it below)
         else:
+            i, j = self.g_i, self.g_j
             live = self.steady.index_select(0, i) & self.steady.index_select(0, j)
             g = entry_material(k, zeta, i, j, k1) * self.g_f
             g = torch.where(live, g, torch.zeros_like(g))
