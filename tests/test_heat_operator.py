@@ -367,3 +367,27 @@ def test_the_changed_entries_found_from_the_rows_are_those_of_the_whole_pass():
     for ch in masks:
         whole = torch.nonzero(ch.index_select(0, op.g_i) | ch.index_select(0, op.g_j)).squeeze(1)
         assert torch.equal(changed_entries(op, ch), whole)
+
+
+def test_frozen_rows_are_none_a_beam_or_a_loss_can_reach():
+    """Between windows only rows no heat reaches wait: a beam plate with surface losses and a
+    fixed step (windows of ~20 steps) freezes interior rows, never a surface row or one a beam
+    can reach, and books its energy to round-off; a beam that may reach any row (a moving one:
+    no candidate rows) freezes none."""
+    from torchsph.thermal import integrated_rows, surface_rows
+
+    _, cfg = load_case(CASES / "beam_plate", ["run.t_end_s=0.02", "numerics.conduction_window=0.25",
+                                              "numerics.dt_s=2e-6", "thermal.emissivity=0.4"])
+    _, sim = make_simulation(cfg)
+    run_steps(sim, steps=200)
+    th = sim.thermal
+    assert th.losses.active and th.int_rows is not None and 0 < th.int_rows.numel() < th.rows.numel()
+    integrated = torch.zeros(sim.state.n, dtype=torch.bool).index_fill_(0, th.int_rows, True)
+    _, srows, _ = surface_rows(th, sim.state)
+    assert bool(integrated[srows].all())
+    for b in th.beam_rows:
+        assert bool(integrated[th.rows[b]].all())
+    assert sim.energy_balance()["residual_rel"] < 1e-12
+    th.beam_rows = [None]
+    integrated_rows(th)
+    assert th.int_rows is None

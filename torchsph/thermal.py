@@ -684,11 +684,13 @@ def integrated_rows(th):
     surface rows, at each selection's first evaluation."""
     sp = th.op.split if th.op is not None else None
     th.int_rows, th.int_rows_for = None, th.rows
-    if sp is None:
+    memo = th.surface_memo
+    if (sp is None or (th.beams and (th.beam_rows is None or any(b is None for b in th.beam_rows)))  # (a beam
+            # that may reach any row, e.g. a moving one: none frozen)
+            or (th.losses.active and (memo is None or memo[0] is not th.rows))):
         return
     keep = sp.fast.index_fill(0, sp.b_row, True)
-    memo = th.surface_memo
-    if th.losses.active and memo is not None and memo[0] is th.rows:
+    if th.losses.active:
         keep = keep.index_fill(0, memo[2], True)
     for b in th.beam_rows or ():
         keep = keep.index_fill(0, b, True)
