@@ -124,6 +124,20 @@ def sparse_sum(G, row, g, jl, cols, rows, T, m, rho) -> torch.Tensor:
     return T.index_select(0, rows) * u[:, 0] - u[:, 1]
 
 
+def local_csr(crow: torch.Tensor, j: torch.Tensor, n: int):
+    """A CSR matrix's columns in a local numbering: (the particles it reads, ascending; each
+    entry's column among them; the (crow, column) index pair for torch.sparse_csr_tensor). A
+    product then reads [V, V T] of those particles only, not of every particle; the index arrays
+    are in 32 bits where they fit (the CPU's sparse product converted 64-bit ones at every
+    product: 6 of 16 ms of the full scene's product at t = 10 ms, 6.5 M entries)."""
+    used = torch.zeros(n, dtype=torch.bool, device=j.device)
+    used[j] = True
+    cols = torch.nonzero(used).squeeze(1)
+    jl = (torch.cumsum(used, 0) - 1).index_select(0, j)
+    small = max(j.numel(), cols.numel()) < 2**31 - 1
+    return cols, jl, ((crow.int(), jl.int()) if small else (crow, jl))
+
+
 def row_entries(crow: torch.Tensor, rows: torch.Tensor):
     """The entries of the CSR rows ``rows`` (places), in G's order: (entry, its place in ``rows``,
     the entries per row), at a cost that follows those entries."""
@@ -203,39 +217,30 @@ class SlowSplit:
         self.slow_f = (~fast).to(op.g.dtype)  # 1 on slow rows, 0 on fast ones
         fr = torch.nonzero(fast).squeeze(1)
         self.f_at = fr  # the fast rows' places in rows
+        self.rows_f = op.rows.index_select(0, fr)  # their particles
         e, e_row, cnt = row_entries(op.crow, fr)
-        total = e.numel()
-        self.e, self.e_row = e, e_row
+        self.e_row = e_row
         gj = op.g_j.index_select(0, e)
-        used = torch.zeros(op.row_of.shape[0], dtype=torch.bool, device=dev)
-        used[gj] = True
-        self.cols = torch.nonzero(used).squeeze(1)
-        self.jl = (torch.cumsum(used, 0) - 1).index_select(0, gj)
         crow = torch.zeros(fr.numel() + 1, dtype=torch.long, device=dev)
         crow[1:] = torch.cumsum(cnt, 0)
-        self.crow = (crow.int(), self.jl.int()) if total < 2**31 - 1 else (crow, self.jl)
+        self.cols, self.jl, csr_index = local_csr(crow, gj, op.row_of.shape[0])
         # the boundary: a fast row's entries whose column is a slow row
         rj = op.row_of.index_select(0, gj)
         b = torch.nonzero((rj >= 0) & ~fast.index_select(0, rj.clamp_min(0))).squeeze(1)
-        self.b = b  # places among the fast entries
-        self.b_i = op.rows.index_select(0, fr).index_select(0, e_row.index_select(0, b))  # the fast particle
+        self.b_i = self.rows_f.index_select(0, e_row.index_select(0, b))  # the fast particle
         self.b_j = gj.index_select(0, b)  # the slow particle
         self.b_row = rj.index_select(0, b)  # its place in rows
         self.R = R
-        self.values(op)
-
-    def values(self, op: "ConductionOperator"):
-        """The fast part's values from G's (after each build of G)."""
-        self.g = op.g.index_select(0, self.e)
-        self.g_b = self.g.index_select(0, self.b)
+        # the values, G's of this build (a split is made anew with each build of G)
+        self.g = op.g.index_select(0, e)
+        self.g_b = self.g.index_select(0, b)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            self.G = torch.sparse_csr_tensor(*self.crow, self.g, size=(self.f_at.numel(), self.cols.numel()),
+            self.G = torch.sparse_csr_tensor(*csr_index, self.g, size=(fr.numel(), self.cols.numel()),
                                              check_invariants=False)
 
     def apply(self, op: "ConductionOperator", T, m, rho, slow: torch.Tensor | None) -> torch.Tensor:
-        rows_f = op.rows.index_select(0, self.f_at)
-        q_f = sparse_sum(self.G, self.e_row, self.g, self.jl, self.cols, rows_f, T, m, rho)
+        q_f = sparse_sum(self.G, self.e_row, self.g, self.jl, self.cols, self.rows_f, T, m, rho)
         q = torch.zeros(self.R, dtype=T.dtype, device=T.device).index_copy_(0, self.f_at, q_f)
         i, j = self.b_i, self.b_j  # the slow row's side of each boundary pair: g_ji V_i (T_j - T_i)
         flow_b = self.g_b * (m.index_select(0, i) / rho.index_select(0, i)) * (T.index_select(0, j) - T.index_select(0, i))
@@ -282,18 +287,8 @@ class ConductionOperator:
         # all in G, so only the other particles' table rows are read for the moving pairs
         counts = torch.bincount(body.index_select(0, self.rows)[steady.index_select(0, self.rows)])
         self.main_body = int(counts.argmax()) if counts.numel() else -1
-        # G's columns in a local numbering: the particles it reads (the rows and their rigid
-        # partners), so a product reads [V, V T] of those only, not of every particle
-        used = torch.zeros(n, dtype=torch.bool, device=dev)
-        used[self.g_j] = True
-        self.cols = torch.nonzero(used).squeeze(1)
-        self.g_jl = (torch.cumsum(used, 0) - 1).index_select(0, self.g_j)
+        self.cols, self.g_jl, self.csr_index = local_csr(self.crow, self.g_j, n)
         self.n_static = int(self.g_row.numel())
-        # the matrix's index arrays in 32 bits where they fit: the CPU's sparse product takes
-        # 32-bit indices, and converted 64-bit ones at every product (6 of 16 ms of the full
-        # scene's product at t = 10 ms, 6.5 M entries); the same sums, the same values
-        small = max(self.n_static, self.cols.numel()) < 2**31 - 1
-        self.csr_index = (self.crow.int(), self.g_jl.int()) if small else (self.crow, self.g_jl)
         self.n_dynamic = 0
         self.G = None
         self.built = False

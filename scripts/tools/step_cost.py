@@ -43,9 +43,10 @@ def main():
     if a.restart is not None:  # the run's own case, as its checkpoint was written with
         cfg = json.loads((a.restart.parent / "config.json").read_text())
         cfg.pop("case", None)
+        resolved = load_case(a.case, a.overrides)[1] if a.overrides else None
         for item in a.overrides:  # (step-control keys: checkpoint.STEP_CONTROL), resolved as the case's
             sec, key = item.split("=", 1)[0].split(".", 1)
-            cfg[sec][key] = load_case(a.case, a.overrides)[1][sec][key]
+            cfg[sec][key] = resolved[sec][key]
     comm = procs = None
     if mpi_size() > 1:
         from parallel.run import SlabRun
