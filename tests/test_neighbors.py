@@ -125,25 +125,36 @@ def table_pairs(nb, mask):
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.integers(0, 2**31 - 1), st.booleans(), st.booleans())
-def test_partial_rebuild_holds_exactly_the_pairs_of_a_full_build(seed, with_work, periodic):
+@given(st.integers(0, 2**31 - 1), st.booleans(), st.booleans(), st.booleans())
+def test_partial_rebuild_holds_exactly_the_pairs_of_a_full_build(seed, with_work, periodic, rod):
     """A rigid lattice block translating, melt particles moving fast over and into it, block
     particles melting away (and moving on as melt), one refreezing in a new place, one moved
-    off the lattice between two rebuilds (melted and refrozen unseen), the work set changing: after every rebuild the partial table holds exactly the pairs of a full
-    build over the same work set; most rebuilds are partial; rows hold no duplicates."""
+    off the lattice between two rebuilds (melted and refrozen unseen), the work set changing,
+    and (``rod``) a second rigid body, a lattice rod fed down into the block as a wire is (its
+    own group: its pairs with the block found across the groups): after every rebuild the
+    partial table holds exactly the pairs of a full build over the same work set; most
+    rebuilds are partial; rows hold no duplicates."""
     g = torch.Generator().manual_seed(seed)
     dx = 0.1
     a = torch.arange(10, dtype=torch.float64) * dx
     block = torch.stack(torch.meshgrid(a, a, a[:4], indexing="ij"), -1).reshape(-1, 3)
     melt = torch.rand(60, 3, generator=g, dtype=torch.float64) * torch.tensor([1.0, 1.0, 0.4]) \
         + torch.tensor([0.0, 0.0, 0.3])
-    x = torch.cat([block, melt])
+    parts = [block, melt]
+    if rod:  # 3 x 3 x 8 lattice columns, their foot 1.5 dx above the block's top at a slant
+        b3 = torch.arange(3, dtype=torch.float64) * dx
+        rod_x = torch.stack(torch.meshgrid(b3, b3, torch.arange(8, dtype=torch.float64) * dx, indexing="ij"), -1)
+        parts.append(rod_x.reshape(-1, 3) + torch.tensor([0.42, 0.37, 0.45], dtype=torch.float64))
+    x = torch.cat(parts)
     nblk, N = block.shape[0], x.shape[0]
-    body = torch.zeros(N, dtype=torch.bool)
-    body[:nblk] = True
+    body = torch.full((N,), -1, dtype=torch.long)
+    body[:nblk] = 1
     v = torch.zeros(N, 3, dtype=torch.float64)
     v[:nblk] = torch.tensor([0.013, -0.004, 0.0], dtype=torch.float64)
-    v[nblk:] = 0.05 * torch.randn(60, 3, generator=g, dtype=torch.float64)
+    v[nblk:nblk + 60] = 0.05 * torch.randn(60, 3, generator=g, dtype=torch.float64)
+    if rod:
+        body[nblk + 60:] = 2
+        v[nblk + 60:] = torch.tensor([0.011, -0.004, -0.021], dtype=torch.float64)
     dom = Domain([-0.5, -0.5, -0.5], [1.5, 1.5, 1.5], [periodic, False, False])
     radius, skin = 2.0 * dx, 0.05
     vl = VerletList(radius, skin, dom)
@@ -152,19 +163,23 @@ def test_partial_rebuild_holds_exactly_the_pairs_of_a_full_build(seed, with_work
     for step in range(60):
         x = dom.wrap(x + v)
         if step == 10:  # block particles near the top melt and move off
-            top = torch.nonzero(body & (x[:, 2] > x[:nblk, 2].max() - 1e-9)).squeeze(1)[:15]
-            body[top] = False
+            top = torch.nonzero((body == 1) & (x[:, 2] > x[:nblk, 2].max() - 1e-9)).squeeze(1)[:15]
+            body[top] = -1
             v[top] = 0.05 * torch.randn(top.numel(), 3, generator=g, dtype=torch.float64)
         if step == 30:  # one of them refreezes (joins the body's motion) somewhere else
-            body[top[0]] = True
+            body[top[0]] = 1
             v[top[0]] = v[0]
+        if rod and step == 40:  # the rod's lowest particles weld to the block (join its body and motion)
+            foot = nblk + 60 + torch.nonzero(x[nblk + 60:, 2] < x[nblk + 60:, 2].min() + 1e-9).squeeze(1)
+            body[foot] = 1
+            v[foot] = v[0].clone()
             # a body particle that melted, moved and refroze between two rebuilds
             x[nblk // 2] += torch.tensor([0.02, 0.015, 0.0], dtype=torch.float64)
         if with_work and step % 7 == 3:  # the work set changes (heat spreads, cold solid leaves)
             work = torch.rand(N, generator=g) > 0.2
             work[nblk:] = True
         sub = (lambda: work) if with_work else None
-        if vl.update(x, subset=sub, rigid=lambda: body.clone()):
+        if vl.update(x, subset=sub, rigid=lambda: body.clone() if rod else body >= 0):
             builds += 1
             ref_nb, ref_mask = (subset_table(x, work, radius + skin, dom).to_dense() if with_work
                                 else build_table(x, radius + skin, dom))

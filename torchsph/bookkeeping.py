@@ -65,17 +65,13 @@ def moving_rows(sim) -> torch.Tensor | None:
     return sim.moving
 
 
-def rigid_body(sim) -> torch.Tensor | None:
-    """Mask of the largest rigid group: the solid particles of one body, or the walls
-    (None without either)."""
+def rigid_groups(sim) -> torch.Tensor | None:
+    """Each particle's rigid group, the particles that move together: the solid particles
+    of one body (its number), the walls (0); -1 for the others (None without any)."""
     st = sim.state
     solid = (st.phase == Phase.SOLID) & (st.body > 0)
     group = torch.where(solid, st.body, torch.where(st.phase == Phase.WALL, 0, -1))
-    rigid = group >= 0
-    if not bool(rigid.any()):
-        return None
-    main = int(torch.bincount(group[rigid]).argmax())
-    return group == main
+    return group if bool((group >= 0).any()) else None
 
 
 def work_set(sim, stale: bool = True) -> torch.Tensor:

@@ -168,10 +168,12 @@ def _search_passes(off, reach, c, xcol, xscol, sorted_cid, order, me, base, all_
 
 
 def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius: int | None = None,
-                rows: torch.Tensor | None = None):
+                rows: torch.Tensor | None = None, sources: torch.Tensor | None = None):
     """Neighbour table of every particle: all j != i with |x_i - x_j| < radius
     (minimum image on periodic axes). With ``rows`` (indices into ``x``), the table of those
-    particles only (row r lists the neighbours of ``rows[r]`` among all of ``x``).
+    particles only (row r lists the neighbours of ``rows[r]`` among all of ``x``). With
+    ``sources`` (a mask of ``x``), the neighbours are taken among those particles only (only
+    they are binned: a row far from every source costs its stencil's range searches alone).
 
     Returns ``(nb, mask)`` of shape (N, k), k the largest neighbour count: row i lists
     the neighbours of i, padded with i itself (``mask`` False there). Padding with the
@@ -199,7 +201,11 @@ def build_table(x: torch.Tensor, radius: float, domain: Domain, cells_per_radius
     for k in range(dim - 2, -1, -1):
         mult[axes[k]] = mult[axes[k + 1]] * ncell[axes[k + 1]]
     cid = sum(c[:, a] * mult[a] for a in range(dim))
-    order = torch.argsort(cid)
+    if sources is None:
+        order = torch.argsort(cid)
+    else:
+        src = torch.nonzero(sources).squeeze(1)
+        order = src.index_select(0, torch.argsort(cid.index_select(0, src)))
     sorted_cid = cid[order]
     # coordinates one axis at a time (1-d gathers are the fast ones), the j side in cell
     # order: a pass reads runs of it
@@ -360,8 +366,11 @@ class VerletList:
 
     Partial rebuilds (``update(..., rigid=...)``): particles of one rigid body keep their mutual
     distances, so their mutual pairs are the ones the current table holds; a rebuild searches
-    afresh only the rows of the other particles (melt, other bodies, particles that joined the
-    work since) and hands each body particle the new partners it gained among them. The
+    afresh only the rows of the other particles (melt, particles that joined the work since)
+    and hands each body particle the new partners it gained among them. With several rigid
+    groups (a substrate and a fed wire) each keeps its own mutual pairs; the pairs across two
+    groups are found by searching each smaller group's rows among the other groups' particles
+    only (the wire's 33 600 rows find candidates only at its tip). The
     result holds exactly the pairs a full build would (tests/test_neighbors.py), in another
     order within rows. The body set (``static``): a particle
     leaves it when it leaves the body (melts) or has moved otherwise than the body since the
@@ -431,42 +440,60 @@ class VerletList:
         """Rebuild if needed; returns True when the pairs changed. ``subset`` (a callable
         returning a mask, evaluated only when rebuilding) restricts the search to those
         particles: the others get empty rows and appear in no row. ``rigid`` (a callable
-        returning the mask of the particles of one rigid body, evaluated only when
-        rebuilding) allows a partial rebuild (see the class). ``rows``: the particles
+        returning each particle's rigid group, -1 where it has none, or the mask of one rigid
+        body; evaluated only when rebuilding) allows a partial rebuild (see the class). ``rows``: the particles
         whose displacement decides (:meth:`needs_rebuild`; None: all)."""
         if force or self.needs_rebuild(x, rows):
             work = subset() if subset is not None else None
             if work is not None and bool(work.all()):
                 work = None
-            body = rigid() if rigid is not None else None
-            if body is None or not self._partial(x, work, body):
+            group = rigid() if rigid is not None else None
+            if group is not None and group.dtype == torch.bool:  # one rigid group, as a mask
+                group = torch.where(group, 0, -1)
+            if group is None or not self._partial(x, work, group):
                 self.build(x, work)
                 self.static = self.x_full = None
-                if body is not None:
-                    self.static = body if work is None else body & work
+                if group is not None:
+                    self.static = group >= 0 if work is None else (group >= 0) & work
                     self.x_full = x.clone()
             self.x_ref = x.clone()
             self.n_builds += 1
             return True
         return False
 
-    def _partial(self, x: torch.Tensor, work: torch.Tensor | None, body: torch.Tensor) -> bool:
-        """Rebuild from the current table keeping the body's mutual pairs; False (nothing
-        done) where a full build is due. Only the working particles' rows are read and
-        written (the table holds no others)."""
+    def _partial(self, x: torch.Tensor, work: torch.Tensor | None, group: torch.Tensor) -> bool:
+        """Rebuild from the current table keeping each rigid group's mutual pairs; False
+        (nothing done) where a full build is due. Only the working particles' rows are read
+        and written (the table holds no others)."""
         N = x.shape[0]
         T = self.table
         if self.static is None or self.static.shape[0] != N or T is None or T.n != N:
             return False
-        st = self.static & body
+        rigid = group >= 0
+        st = self.static & rigid
         if work is not None:
             st &= work
         srows = torch.nonzero(st).squeeze(1)
-        if srows.numel():  # moved with the body since the last full build (rounding aside)
+        minor, main = [], None  # the static rows of each group but the largest (main)
+        if srows.numel():  # moved with their group since the last full build (rounding aside)
             d = self.domain.minimum_image(x.index_select(0, srows) - self.x_full.index_select(0, srows))
-            drift = (d - d.median(dim=0).values).abs().amax(1)
-            srows = srows[drift <= self.skin * (1e-3 if x.dtype == torch.float32 else 1e-8)]
+            g = group.index_select(0, srows)
+            ids = torch.unique(g).tolist()  # (the rigid groups: a few; one read at a rebuild)
+            if len(ids) == 1:
+                ref = d.median(dim=0).values
+            else:
+                ref = torch.empty_like(d)
+                for gid in ids:
+                    sel = torch.nonzero(g == gid).squeeze(1)
+                    ref.index_copy_(0, sel, d.index_select(0, sel).median(dim=0).values.expand(sel.numel(), -1))
+            keep_s = torch.nonzero((d - ref).abs().amax(1) <= self.skin * (1e-3 if x.dtype == torch.float32 else 1e-8)).squeeze(1)
+            srows, g = srows.index_select(0, keep_s), g.index_select(0, keep_s)
             st = torch.zeros_like(st).index_fill_(0, srows, True)
+            if len(ids) > 1:
+                per = torch.bincount(g, minlength=max(ids) + 1).tolist()
+                main = max(range(len(per)), key=lambda k: per[k])
+                minor = [(gid, srows.index_select(0, torch.nonzero(g == gid).squeeze(1))) for gid in ids
+                         if gid != main and per[gid]]
         alive = work if work is not None else torch.ones(N, dtype=torch.bool, device=x.device)
         q = torch.nonzero(alive & ~st).squeeze(1)  # rows searched afresh
         n_work = int(alive.sum())
@@ -483,7 +510,17 @@ class VerletList:
         qi = q.unsqueeze(1).expand_as(qnb)[qmask]
         qj = qnb[qmask]
         back = torch.nonzero(st.index_select(0, qj)).squeeze(1)
-        ti, tj = qj.index_select(0, back), qi.index_select(0, back)  # row ti gains tj
+        gain_i, gain_j = [qj.index_select(0, back)], [qi.index_select(0, back)]  # row i gains j
+        # the pairs between static rows of two groups (which move apart): each smaller group's
+        # rows searched among the other groups' static particles only; the largest group's rows
+        # gain their partners found so (a smaller group's rows find their pairs with each other)
+        for gid, mrows in minor:
+            cnb, cmask = build_table(x, self.radius + self.skin, self.domain, rows=mrows, sources=st & (group != gid))
+            ci, cj = mrows.unsqueeze(1).expand_as(cnb)[cmask], cnb[cmask]
+            big = torch.nonzero(group.index_select(0, cj) == main).squeeze(1)
+            gain_i += [ci, cj.index_select(0, big)]
+            gain_j += [cj, ci.index_select(0, big)]
+        ti, tj = (torch.cat(t) for t in (gain_i, gain_j)) if minor else (gain_i[0], gain_j[0])
         perm = torch.sort(ti, stable=True).indices
         ti, tj = ti.index_select(0, perm), tj.index_select(0, perm)
         # the body rows that change: those with a partner that is not of the body (freed) or
@@ -497,13 +534,18 @@ class VerletList:
             onb, omask = T.gather(q, within=True)
             touched = torch.zeros(N, dtype=torch.bool, device=dev)
             touched.index_fill_(0, onb[omask], True).index_fill_(0, ti, True)
+            for _, mrows in minor:  # the smaller groups' rows and their old partners (pairs across groups freed)
+                mnb, mmask = T.gather(mrows, within=True)
+                touched.index_fill_(0, mnb[mmask], True).index_fill_(0, mrows, True)
             srows = torch.nonzero(touched & st).squeeze(1)
-        # the body's mutual pairs stay where the table holds them; every other entry is freed
+        # each group's mutual pairs stay where the table holds them; every other entry is freed
         nb, keep = T.gather(srows)
         k = T.k
         S = srows.numel()
         col = srows.unsqueeze(1)
         keep = keep & st.index_select(0, nb.reshape(-1)).view_as(nb)
+        if minor:
+            keep &= group.index_select(0, nb.reshape(-1)).view_as(nb) == group.index_select(0, srows).unsqueeze(1)
         ls = torch.searchsorted(srows, ti)  # ti's place among the body rows
         gain = torch.bincount(ls, minlength=S)
         grows = torch.nonzero(gain).squeeze(1)
@@ -557,7 +599,7 @@ class VerletList:
         # the body's rows searched now hold all their pairs with the working particles, so
         # they join the body set: the next partial rebuild keeps them instead of searching
         # them again (a particle that joins the work set is searched once)
-        self.static = st.index_fill_(0, q, True) & body
+        self.static = st.index_fill_(0, q, True) & rigid
         self.n_partial += 1
         return True
 

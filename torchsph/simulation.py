@@ -145,7 +145,7 @@ class Simulation:
             force = self.comm.any(self.nl.needs_rebuild(self.state.x, self.moving_rows()))
             if not force:
                 return
-        rigid = (lambda: bookkeeping.rigid_body(self)) if self.partial_rebuild else None
+        rigid = (lambda: bookkeeping.rigid_groups(self)) if self.partial_rebuild else None
         if self.nl.update(self.state.x, force=force, subset=subset, rigid=rigid, rows=self.moving_rows()):
             self.stale = False
             self.rebuilt = True

@@ -15,7 +15,8 @@ temporary git worktree and removed afterwards. States:
   afresh, steps 2..11 counted for host syncs, then ``--full-steps`` timed steps.
 
 Columns: ms per step over the timed steps (rebuilds included), the median plain step, the
-extra cost of a step that rebuilds the neighbour list, particle-steps/s, the process's peak
+extra cost of a step that rebuilds the neighbour list (all of them, then split into those that kept
+the active set and those that refreshed it, as the heated zone reached its edge), particle-steps/s, the process's peak
 RSS, host synchronisations per step (without and with a rebuild; :mod:`torchsph.syncs`), and
 the reference's time over this code's.
 """
@@ -112,10 +113,17 @@ def fmt(v, spec):
     return "-" if v is None else format(v, spec)
 
 
+def split(r, kind):
+    """'count: ms' of one kind of rebuild step (a record without the split: '?')."""
+    n = r.get(kind + "s")
+    return "?" if n is None else f"{n}: {fmt(r[kind + '_ms'], '.0f')}"
+
+
 def row(state, code, r, ref=None):
     ratio = f"{ref['ms_per_step'] / r['ms_per_step']:.2f}x" if ref else "1 (ref)"
     return (f"| {state} | {code} | {r['particles']} | {r['steps']} | {r['ms_per_step']:.1f} | "
             f"{r['ms_plain_step']:.1f} | {r['rebuilds']} | {fmt(r['rebuild_ms'], '.0f')} | "
+            f"{split(r, 'neighbour_rebuild')} | {split(r, 'refresh')} | "
             f"{r['particle_steps_per_s']:.3g} | {r['peak_rss_GB']:.2f} | {fmt(r['syncs_per_plain_step'], '.0f')} | "
             f"{fmt(r['syncs_per_rebuild_step'], '.0f')} | {ratio} |")
 
@@ -144,8 +152,9 @@ def run(ref: str, steps: int, full_steps: int, states=("preview", "full"), t_sta
     if "preview" in states:
         physics_table(ref, ref_key, t_state)
     print("| state | code | particles | steps | ms/step | plain step ms | rebuilds | rebuild ms | "
+          "neighbour rebuilds: ms | active-set refreshes: ms | "
           "particle-steps/s | peak RSS GB | syncs/step | syncs/rebuild step | speed-up |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for state in states:
         ref_r = results[state, "ref"]
         print(row(state, ref, ref_r))

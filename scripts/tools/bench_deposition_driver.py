@@ -32,27 +32,39 @@ def load_counter():
     return mod.SyncCounter
 
 
+def refreshes(sim) -> int | None:
+    """Refreshes of the active set so far (None: a code that does not count them)."""
+    return getattr(getattr(sim, "active_set", None), "n_refresh", None)
+
+
 def timed_steps(sim, run_steps, n):
-    """Per-step wall times and whether each step rebuilt the neighbour list."""
+    """Per-step wall times, whether each step rebuilt the neighbour list, and whether that
+    rebuild refreshed the active set (the heated zone reached its edge: new rows everywhere)."""
     out = []
     for _ in range(n):
-        b = sim.nl.n_builds
+        b, f = sim.nl.n_builds, refreshes(sim)
         t = time.perf_counter()
         run_steps(sim, steps=1)
-        out.append((time.perf_counter() - t, sim.nl.n_builds > b))
+        rebuilt = sim.nl.n_builds > b
+        out.append((time.perf_counter() - t, rebuilt, rebuilt and f is not None and refreshes(sim) != f))
     return out
 
 
 def summary(sim, times, setup_s, syncs_plain, syncs_rebuild, n0):
-    plain = [t for t, r in times if not r]
-    reb = [t for t, r in times if r]
+    plain = [t for t, r, _ in times if not r]
+    reb = [t for t, r, _ in times if r]
+    nbr = [t for t, r, f in times if r and not f]  # neighbour rebuilds that kept the active set
+    fresh = [t for t, _, f in times if f]  # and those that refreshed it
     med = statistics.median(plain) if plain else float("nan")
-    total = sum(t for t, _ in times)
+    total = sum(t for t, _, _ in times)
+    extra = lambda v: 1e3 * (statistics.mean(v) - med) if v else None  # noqa: E731
     return {
         "particles": n0, "steps": len(times), "ms_per_step": 1e3 * total / len(times),
         "ms_plain_step": 1e3 * med,
         "rebuilds": len(reb),
-        "rebuild_ms": 1e3 * (statistics.mean(reb) - med) if reb else None,
+        "rebuild_ms": extra(reb),
+        "neighbour_rebuilds": len(nbr), "neighbour_rebuild_ms": extra(nbr),
+        "refreshes": len(fresh), "refresh_ms": extra(fresh),
         "particle_steps_per_s": n0 * len(times) / total,
         "peak_rss_GB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
         "syncs_per_plain_step": syncs_plain, "syncs_per_rebuild_step": syncs_rebuild,

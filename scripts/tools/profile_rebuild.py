@@ -2,6 +2,7 @@
 checkpoint (one thread), with the rebuilds' mean wall time.
 
     python scripts/tools/profile_rebuild.py CHECKPOINT [--steps 100] [--top 40] [--sort cumulative]
+        [--set numerics.KEY=VALUE]
 
 The run continues from the checkpoint with a full neighbour build, 5 steps untimed, then
 ``--steps`` steps; only the rebuilds (``Simulation.refresh_pairs`` where the pairs changed)
@@ -27,9 +28,17 @@ def main():
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--top", type=int, default=40)
     ap.add_argument("--sort", default="cumulative")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="numerics.KEY=VALUE",
+                    help="a step-control key of the run's numerics (e.g. numerics.conduction_window=0.25)")
     a = ap.parse_args()
     torch.set_num_threads(1)
-    _, sim = simulation_from_run(a.checkpoint)
+    numerics = {}
+    for o in a.overrides:
+        key, _, value = o.partition("=")
+        if not key.startswith("numerics.") or not value:
+            ap.error(f"--set {o!r}: expected numerics.KEY=VALUE")
+        numerics[key.split(".", 1)[1]] = float(value)
+    _, sim = simulation_from_run(a.checkpoint, numerics=numerics or None)
     sim.refresh_pairs(force=True)
     run_steps(sim, steps=5)
     prof = cProfile.Profile()
@@ -50,7 +59,8 @@ def main():
     run_steps(sim, steps=a.steps)
     n = len(walls)
     print(f"{n} rebuilds in {a.steps} steps, {1e3 * sum(walls) / max(n, 1):.1f} ms each (under the profiler)")
-    pstats.Stats(prof).sort_stats(a.sort).print_stats(a.top)
+    if n:  # (with none, the profiler holds nothing to print: take more steps)
+        pstats.Stats(prof).sort_stats(a.sort).print_stats(a.top)
 
 
 if __name__ == "__main__":
