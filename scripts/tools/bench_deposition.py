@@ -114,8 +114,9 @@ def fmt(v, spec):
 
 
 def split(r, kind):
-    """'count: ms' of one kind of rebuild step (a record without the split: '?')."""
-    n = r.get(kind + "s")
+    """'count: ms' of one kind of rebuild step, ``neighbour_rebuild`` or ``refresh`` (a record
+    without the split: '?')."""
+    n = r.get({"neighbour_rebuild": "neighbour_rebuilds", "refresh": "refreshes"}[kind])
     return "?" if n is None else f"{n}: {fmt(r[kind + '_ms'], '.0f')}"
 
 
