@@ -14,6 +14,15 @@ def _seed():
     torch.manual_seed(0)
 
 
+@pytest.fixture(autouse=True)
+def _threads():
+    """A test that runs the command line sets torch's threads from the load (torchsph/threads.py):
+    put them back, so that no later test runs on another count."""
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
 def assert_blow_up_diagnosed(case, overrides, limit, factor, max_steps, parts):
     """Step ``case`` at ``factor`` x its ``limit`` until it stops; the one-line diagnosis
     must contain every string in ``parts``."""

@@ -72,3 +72,7 @@ def test_set_errors_name_set_not_the_case_file(tmp_path, capsys, setting, parts)
 def test_refused_fixed_dt_is_bad_input(tmp_path, capsys):
     one_line_error(capsys, POIS + ["--steps", "2", "--out", str(tmp_path), "--set", "numerics.dt_s=1.0"],
                    "numerics.dt_s", "exceeds the", "allow_unstable_dt")
+
+
+def test_threads_must_be_positive(tmp_path, capsys):
+    one_line_error(capsys, POIS + ["--steps", "2", "--threads", "0", "--out", str(tmp_path)], "--threads 0", "> 0")

@@ -36,6 +36,9 @@ def parse_args(argv=None):
                     help="write OUT/checkpoint.pt every N steps (always at the end and on Ctrl-C)")
     ap.add_argument("--restart", type=Path, default=None, metavar="CHECKPOINT",
                     help="continue a run from its checkpoint (same case; [run] may differ)")
+    ap.add_argument("--threads", type=int, default=None, metavar="N",
+                    help="torch's CPU threads per process (default: the cores free when the run starts, "
+                         "shared among the MPI ranks on this machine; OMP_NUM_THREADS, where set, decides)")
     ap.add_argument("--estimate", action="store_true",
                     help="print what the run costs (particles, memory, steps, disk, and the wall time "
                          "projected from a probe of its first steps) and exit; writes nothing")
@@ -95,6 +98,8 @@ def main(argv=None) -> int:
             raise CaseError(f"--t-end {args.t_end}: must be > 0")
         if args.steps is not None and args.steps <= 0:
             raise CaseError(f"--steps {args.steps}: must be > 0")
+        if args.threads is not None and args.threads <= 0:
+            raise CaseError(f"--threads {args.threads}: must be > 0")
         overrides = (args.overrides + (["numerics.compile=true"] if args.compile else [])
                      + (["numerics.skip_cold_solid=false"] if args.no_skip else []))
         path, cfg = load_case(args.case, overrides, preview=args.preview)
@@ -104,9 +109,10 @@ def main(argv=None) -> int:
         from .runner import run_case
         if args.checkpoint_every is not None and args.checkpoint_every <= 0:
             raise CaseError(f"--checkpoint-every {args.checkpoint_every}: must be > 0")
+        from . import threads
         kw = dict(t_end=args.t_end, steps=args.steps, device=args.device, dtype=args.dtype,
                   progress=not args.quiet, checkpoint_every=args.checkpoint_every, restart=args.restart,
-                  estimate=args.estimate)
+                  estimate=args.estimate, threads=threads.apply(args.threads))
         runner = run_case
         if mpi_size() > 1 or _global_checkpoint(args.restart):
             from parallel.run import run_case_mpi as runner  # launched by mpirun / mpiexec

@@ -103,11 +103,11 @@ class Progress:
 
 def projection_lines(n_all: int, n_active: int, rss_gb: float | None, ranks: int, steps_left: float,
                      dt_s: float, dt_why: str, snapshots: int, snapshot_bytes: float,
-                     probe: tuple[int, float] | None) -> list[str]:
+                     probe: tuple[int, float] | None, threads: str | None = None) -> list[str]:
     """The cost block printed before a run (and by ``--estimate``). ``probe``: (steps, wall
-    seconds) of a short probe, or None before it."""
+    seconds) of a short probe, or None before it; ``threads``: how many CPU threads, and why."""
     out = [f"cost: {n_all:,} particles ({n_active:,} integrated now) on {ranks} process"
-           + ("es" if ranks > 1 else "")
+           + ("es" if ranks > 1 else "") + (f", {threads}" if threads else "")
            + (f"; memory {rss_gb:.2f} GB peak so far per process" if rss_gb is not None else ""),
            f"cost: ~{steps_left:,.0f} steps to the end at dt ~ {dt_s:.3g} s ({dt_why}); "
            f"{snapshots} snapshots, ~{snapshots * snapshot_bytes / GB:.2f} GB on disk"]
