@@ -229,14 +229,16 @@ def test_an_operator_that_follows_a_new_row_set_is_the_one_made_afresh():
 
 def test_rigid_marks_from_the_few_rows_equal_every_rows_own():
     """The rigid marks (solid, not next to melt, all neighbours firm and of its body) read
-    from the rows outside the largest body and its non-firm rows (the table is symmetric)
-    equal the marks read from every working row, through a deposition run with melt, a fed
-    wire and partial rebuilds, at every selection."""
+    from the rows outside the largest body and its non-firm rows (the table is symmetric),
+    or from the non-firm rows and those whose row may hold a partner of another body (after
+    a partial rebuild: ``cross_rows``), equal the marks read from every working row, through
+    a deposition run with melt, a fed wire and partial rebuilds, at every selection."""
+    from torchsph.bookkeeping import cross_rows
     from torchsph.thermal import rigid_marks, rigid_marks_direct
     cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3",
                 "numerics.conduction_window=0.0")  # (every pair every step: compared with the pair sum)
     _, sim = make_simulation(cfg)
-    seen = {"checks": 0, "fluid": 0}
+    seen = {"checks": 0, "fluid": 0, "cross": 0}
     orig = sim.select_pairs
 
     def checked(new_table=False):
@@ -245,12 +247,16 @@ def test_rigid_marks_from_the_few_rows_equal_every_rows_own():
         work = sim.active_set.work
         fast = rigid_marks(s, table, work)
         assert torch.equal(fast, rigid_marks_direct(s, table, work))
+        cross = cross_rows(sim)
+        if cross is not None:
+            assert torch.equal(rigid_marks(s, table, work, cross), fast)
+            seen["cross"] += 1
         seen["checks"] += 1
         seen["fluid"] += int((s.phase == Phase.FLUID).sum()) > 0 and bool((~fast & (s.phase == Phase.SOLID)).any())
 
     sim.select_pairs = checked
     run_steps(sim, steps=250)
-    assert seen["checks"] > 5 and seen["fluid"] > 0, seen
+    assert seen["checks"] > 5 and seen["fluid"] > 0 and seen["cross"] > 2, seen
 
 
 def test_an_operator_made_in_blocks_of_rows_is_the_one_made_whole(monkeypatch):

@@ -74,6 +74,18 @@ def rigid_groups(sim) -> torch.Tensor | None:
     return group if bool((group >= 0).any()) else None
 
 
+def cross_rows(sim) -> torch.Tensor | None:
+    """The particles whose table row may hold a partner of another rigid body, for a pair
+    selection: those the last partial neighbour rebuild says so of (``VerletList.cross``), and
+    those whose rigid body changed since (melted, froze, welded). None where it is not known (a
+    full build, a decomposed run): the selection then reads every row outside the largest body."""
+    nl, st = sim.nl, sim.state
+    if (sim.comm.size > 1 or nl.cross is None or nl.body_ref is None or nl.cross.shape[0] != st.n
+            or nl.body_ref.shape[0] != st.n):
+        return None
+    return nl.cross | (rigid_of(st.phase, st.body) != nl.body_ref)
+
+
 def work_set(sim, stale: bool = True) -> torch.Tensor:
     """The active set's work mask at a neighbour rebuild, the set refreshed first when it is
     ``stale`` (a frontier particle became a seed, particles were added or removed), when it

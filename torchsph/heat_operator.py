@@ -346,14 +346,17 @@ class ConductionOperator:
         return (rows.shape == self.rows.shape and self.row_of.shape[0] == n
                 and bool(torch.equal(rows, self.rows)))
 
-    def select(self, table, steady: torch.Tensor, body: torch.Tensor, work: torch.Tensor | None):
+    def select(self, table, steady: torch.Tensor, body: torch.Tensor, work: torch.Tensor | None,
+               cross: torch.Tensor | None = None):
         """The pairs evaluated every step, from the neighbour table (a
         :class:`~torchsph.neighbors.NeighbourTable`): every pair
         with a particle that is not steady, or of two bodies. They are found from the table
         rows of the particles outside the main body or not steady (in the work set), each
         pair once, as it is or transposed (the table is symmetric); G's values are made
         again at the next evaluation (zeta and the steady set may have changed)."""
-        cand = ~steady | (body != self.main_body)
+        # (``cross``: the particles whose row may hold a partner of another body; the steady
+        # particles outside it have only partners of their own body: their rigid pairs are in G)
+        cand = ~steady | (body != self.main_body if cross is None else cross)
         if work is not None:
             cand = cand & work & table.has_row()  # (a decomposed work set's outer ghosts have no row)
         cidx = torch.nonzero(cand).squeeze(1)

@@ -395,6 +395,9 @@ class VerletList:
         self.x_full: torch.Tensor | None = None  # positions at the last full build
         self.x_mig: torch.Tensor | None = None  # a decomposed run's positions at the last migration
         self.body_ref: torch.Tensor | None = None  # each particle's rigid body at the last build (-1: none; set by the step)
+        # after a partial rebuild, the particles whose row may hold a partner of another rigid group (the
+        # rows searched afresh and both ends of the pairs found across groups); None: not known (a full build)
+        self.cross: torch.Tensor | None = None
 
     @property
     def nb(self) -> torch.Tensor | None:
@@ -452,7 +455,7 @@ class VerletList:
                 group = torch.where(group, 0, -1)
             if group is None or not self._partial(x, work, group):
                 self.build(x, work)
-                self.static = self.x_full = None
+                self.static = self.x_full = self.cross = None
                 if group is not None:
                     self.static = group >= 0 if work is None else (group >= 0) & work
                     self.x_full = x.clone()
@@ -521,6 +524,9 @@ class VerletList:
             gain_i += [ci, cj.index_select(0, big)]
             gain_j += [cj, ci.index_select(0, big)]
         ti, tj = (torch.cat(t) for t in (gain_i, gain_j)) if minor else (gain_i[0], gain_j[0])
+        cross = torch.zeros(N, dtype=torch.bool, device=dev).index_fill_(0, q, True)
+        for t in gain_i[1:]:  # (the pairs found across groups: both ends)
+            cross.index_fill_(0, t, True)
         perm = torch.sort(ti, stable=True).indices
         ti, tj = ti.index_select(0, perm), tj.index_select(0, perm)
         # the body rows that change: those with a partner that is not of the body (freed) or
@@ -600,6 +606,7 @@ class VerletList:
         # they join the body set: the next partial rebuild keeps them instead of searching
         # them again (a particle that joins the work set is searched once)
         self.static = st.index_fill_(0, q, True) & rigid
+        self.cross = cross
         self.n_partial += 1
         return True
 

@@ -174,7 +174,7 @@ class Simulation:
         if self.thermal is not None:
             self.thermal.owned = self.comm.owned(self)
             self.thermal.select_pairs(self.state, self.nl.table, active=self.active_mask,
-                                      work=self.active_set.work if self.active_set is not None else None,
+                                      work=getattr(self.active_set, "work", None), cross=bookkeeping.cross_rows(self),
                                       x_ref=self.nl.x_ref, new_table=new_table, reach=0.5 * self.nl.skin)
         for term in self.terms:
             term.select(self)

@@ -283,7 +283,7 @@ def rigid_marks_direct(state: ParticleState, table, work=None) -> torch.Tensor:
     return rigid_w if w is None else firm.index_copy(0, w, rigid_w)
 
 
-def rigid_marks(state: ParticleState, table, work=None) -> torch.Tensor:
+def rigid_marks(state: ParticleState, table, work=None, cross=None) -> torch.Tensor:
     """Per particle: solid, not next to melt (solid next to melt is the melt's wall: its
     density follows the melt's pressure), and so are all its neighbours, of its body. Only
     the rows of the table's ``work`` set (None: all) are read: the others have no neighbours
@@ -295,7 +295,12 @@ def rigid_marks(state: ParticleState, table, work=None) -> torch.Tensor:
     whose own row is one of those few (not firm, or not of that body), which marks it. Only
     the rows of the particles outside that body, or not firm, are read, not the body's
     bulk. Where a working particle has no row (a decomposed run's outer ghosts) its
-    partners cannot be marked from it: :func:`rigid_marks_direct` reads every row."""
+    partners cannot be marked from it: :func:`rigid_marks_direct` reads every row.
+
+    With ``cross`` (the particles whose row may hold a partner of another body:
+    :func:`~torchsph.bookkeeping.cross_rows`) only the rows not firm or in ``cross`` are read,
+    of any body (a fed wire's rows too, but for its tip): a firm particle outside them is not
+    rigid exactly when one of them lists it and is not firm or of another body."""
     n, dev = state.n, state.x.device
     has = table.has_row()
     if work is not None and not bool((work & ~has).any()):
@@ -307,17 +312,24 @@ def rigid_marks(state: ParticleState, table, work=None) -> torch.Tensor:
     fnb, fm = table.gather(fluid, within=True)
     near_melt = torch.zeros(n, dtype=torch.bool, device=dev).index_fill_(0, fnb[fm], True)
     firm = solid & ~near_melt
-    rb = state.body.index_select(0, table.rows)
-    fr = rb[firm.index_select(0, table.rows)]
-    main = int(torch.bincount(fr).argmax()) if fr.numel() else -1
-    # the rows that can unmake a neighbour's rigidity, or whose own rigidity is read directly
-    few = torch.nonzero(has & (~firm | (state.body != main))).squeeze(1)
+    if cross is None:
+        fr = state.body.index_select(0, table.rows)[firm.index_select(0, table.rows)]
+        main = int(torch.bincount(fr).argmax()) if fr.numel() else -1
+        # the rows that can unmake a neighbour's rigidity, or whose own rigidity is read directly
+        few = torch.nonzero(has & (~firm | (state.body != main))).squeeze(1)
+    else:
+        few = torch.nonzero(has & (~firm | cross)).squeeze(1)
     nb, m = table.gather(few, within=True)
-    marked = torch.zeros(n, dtype=torch.bool, device=dev).index_fill_(0, nb[m], True)
-    rigid = firm & ~(marked & (state.body == main))  # the body's particles: no such partner
-    # the other rows, each from its own neighbours
     body_f = state.body.index_select(0, few)
-    same = (gather_nb(firm, nb) & (gather_nb(state.body, nb) == body_f.unsqueeze(1))) | ~m
+    same_body = gather_nb(state.body, nb) == body_f.unsqueeze(1)
+    if cross is None:
+        marked = torch.zeros(n, dtype=torch.bool, device=dev).index_fill_(0, nb[m], True)
+        rigid = firm & ~(marked & (state.body == main))  # the body's particles: no such partner
+    else:  # marked by a listing row that is not firm or of another body
+        bad = m & (~same_body | ~firm.index_select(0, few).unsqueeze(1))
+        rigid = firm & ~torch.zeros(n, dtype=torch.bool, device=dev).index_fill_(0, nb[bad], True)
+    # the other rows, each from its own neighbours
+    same = (gather_nb(firm, nb) & same_body) | ~m
     return rigid.index_copy(0, few, firm.index_select(0, few) & same.all(1))
 
 
@@ -361,17 +373,17 @@ class Conduction:
 
     def select_pairs(self, state: ParticleState, table,
                      active: torch.Tensor | None = None, work: torch.Tensor | None = None,
-                     x_ref: torch.Tensor | None = None, new_table: bool = True, reach: float | None = None):
-        """Rows: every particle but the walls, or with an active set only its active
-        particles (and the walls of its work set). ``x_ref``: the positions at the last
-        neighbour build (default: now); ``new_table``: the table was just built (else the
-        phases changed, or the particles were swapped in with their arrays); ``reach``: how
-        far a particle may move from ``x_ref`` before the next build (None: unknown)."""
+                     x_ref: torch.Tensor | None = None, new_table: bool = True, reach: float | None = None, cross=None):
+        """Rows: every particle but the walls, or with an active set only its active particles (and the
+        walls of its work set). ``x_ref``: the positions at the last neighbour build (default: now);
+        ``new_table``: the table was just built (else the phases changed, or the particles were swapped in
+        with their arrays); ``reach``: how far a particle may move from ``x_ref`` before the next build
+        (None: unknown); ``cross``: the only rigid rows read (:func:`~torchsph.bookkeeping.cross_rows`)."""
         wall = state.phase == Phase.WALL
         self.wall_mask = wall
         # Laplacian normalisation and surface area per particle (and the surface normal):
         # recomputed after each neighbour rebuild, except where they cannot have changed
-        self._mark_rigid(state, table, work)
+        self._mark_rigid(state, table, work, cross)
         self.zeta_cache = None
         self.area_cache = None
         self.rows = torch.nonzero(~wall if active is None else ~wall & active).squeeze(1)
@@ -379,7 +391,7 @@ class Conduction:
         x_ref = state.x if x_ref is None else x_ref
         comm = getattr(self, "comm", None)
         op = select_operator(self, table, state, x_ref, new_table)
-        op.select(table, self.steady, state.body, work)
+        op.select(table, self.steady, state.body, work, cross)
         self.rows_w = torch.nonzero(wall if work is None else wall & work).squeeze(1)
         own = getattr(self, "owned", None)  # (ghosts off the rows: their owners count them)
         rest = torch.ones(state.n, dtype=torch.bool, device=state.rho.device) if own is None else own.clone()
@@ -429,11 +441,11 @@ class Conduction:
         self.zeta_ok = self.area_ok = None
         self.op = None
 
-    def _mark_rigid(self, state: ParticleState, table, work=None):
+    def _mark_rigid(self, state: ParticleState, table, work=None, cross=None):
         """Per particle: solid, not next to melt, and so are all its neighbours, of its body.
         Only the rows of the table's ``work`` set (None: all) are read: the others have no
-        neighbours (a solid one is rigid)."""
-        self.rigid = rigid_marks(state, table, work)
+        neighbours (a solid one is rigid). ``cross``: :func:`rigid_marks`'s."""
+        self.rigid = rigid_marks(state, table, work, cross)
         n = state.n
         for name in ("zeta", "area"):
             ok = getattr(self, f"{name}_ok")
