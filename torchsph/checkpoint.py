@@ -187,7 +187,8 @@ def snapshot(sim) -> dict:
         "nl": {"x_ref": _cpu(sim.nl.x_ref), "table": {k: _cpu(v) if isinstance(v, torch.Tensor) else v
                                                       for k, v in sim.nl.table.state_dict().items()},
                "n_builds": sim.nl.n_builds, "n_partial": sim.nl.n_partial,
-               "static": _cpu(sim.nl.static), "x_full": _cpu(sim.nl.x_full), "body_ref": _cpu(sim.nl.body_ref)},
+               "static": _cpu(sim.nl.static), "x_full": _cpu(sim.nl.x_full), "body_ref": _cpu(sim.nl.body_ref),
+               "cross": _cpu(sim.nl.cross)},
         "rng": torch.get_rng_state(),
         "stale": sim.stale,
         "plan": {"steps": sim.plan.steps, "sums": sim.plan.sums},
@@ -305,6 +306,9 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     # each particle's rigid body at the last build (absent in older checkpoints: every working
     # particle's displacement is checked until the next build)
     sim.nl.body_ref = to(nl["body_ref"]) if nl.get("body_ref") is not None else None
+    # the rows that may hold a partner of another body (absent: not known, every row outside the
+    # largest body is read at the restore's selection; the same pairs, found in another order)
+    sim.nl.cross = to(nl["cross"]) if nl.get("cross") is not None else None
     sim.stale = d.get("stale", False)
     if sim.active_set is not None and "active" in d:
         a = d["active"]
