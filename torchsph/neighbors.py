@@ -391,7 +391,7 @@ class VerletList:
         self.table: NeighbourTable | None = None
         self.n_builds = 0
         self.n_partial = 0  # of the builds, partial ones
-        self.static: torch.Tensor | None = None  # rows whose mutual pairs the table holds (one body)
+        self.static: torch.Tensor | None = None  # rows whose mutual pairs with their rigid group the table holds
         self.x_full: torch.Tensor | None = None  # positions at the last full build
         self.x_mig: torch.Tensor | None = None  # a decomposed run's positions at the last migration
         self.body_ref: torch.Tensor | None = None  # each particle's rigid body at the last build (-1: none; set by the step)
