@@ -529,21 +529,24 @@ class VerletList:
             cross.index_fill_(0, t, True)
         perm = torch.sort(ti, stable=True).indices
         ti, tj = ti.index_select(0, perm), tj.index_select(0, perm)
-        # the body rows that change: those with a partner that is not of the body (freed) or
-        # that gain one. Where the working rows are the table's own (the active set kept), a
-        # freed partner is a searched row (every partner is working, and the working rows not
-        # of the body are the searched ones) and the table is symmetric, so they are the body
-        # rows listed in the searched rows' old rows, or gaining: the others stay as they are
-        # and are not read (the table is copied whole once)
+        # the body rows that change: those with a partner that is not of the body (freed), that
+        # left the work set, or that gain one. Every old partner was working (the table holds
+        # the working particles' pairs only) and the table is symmetric, so a freed partner is a
+        # searched row that had a row, or a row that left the work: the changing body rows are
+        # those listed in these rows' old rows, and the gaining ones. The others stay as they
+        # are and are not read (the table is copied whole once)
         same = rows.shape == T.rows.shape and bool(torch.equal(rows, T.rows))
-        if same:
-            onb, omask = T.gather(q, within=True)
-            touched = torch.zeros(N, dtype=torch.bool, device=dev)
-            touched.index_fill_(0, onb[omask], True).index_fill_(0, ti, True)
-            for _, mrows in minor:  # the smaller groups' rows and their old partners (pairs across groups freed)
-                mnb, mmask = T.gather(mrows, within=True)
-                touched.index_fill_(0, mnb[mmask], True).index_fill_(0, mrows, True)
-            srows = torch.nonzero(touched & st).squeeze(1)
+        onb, omask = T.gather(q, within=same)  # (a row new to the work set has none: empty)
+        touched = torch.zeros(N, dtype=torch.bool, device=dev)
+        touched.index_fill_(0, onb[omask], True).index_fill_(0, ti, True)
+        if not same:  # the rows that left the work set free their partners
+            left = T.rows.index_select(0, torch.nonzero(~alive.index_select(0, T.rows)).squeeze(1))
+            lnb, lmask = T.gather(left, within=True)
+            touched.index_fill_(0, lnb[lmask], True)
+        for _, mrows in minor:  # the smaller groups' rows and their old partners (pairs across groups freed)
+            mnb, mmask = T.gather(mrows, within=True)
+            touched.index_fill_(0, mnb[mmask], True).index_fill_(0, mrows, True)
+        srows = torch.nonzero(touched & st).squeeze(1)
         # each group's mutual pairs stay where the table holds them; every other entry is freed
         nb, keep = T.gather(srows)
         k = T.k
@@ -574,17 +577,16 @@ class VerletList:
             # slots are in (row, column) order, as the gained partners are (sorted by row)
             flat_nb.index_copy_(0, slots, tj)
             flat_mask.index_fill_(0, slots, True)
-        # the new table: the working rows, i.e. the body rows kept and the rows searched afresh
+        # the new table: the working rows, i.e. the body rows kept and the rows searched afresh:
+        # the old table, its changed rows written over (where the rows are the old ones, in
+        # place: the table's arrays are read by no one else, selections gather copies); the
+        # body rows kept are the old rows as they were (a row new to the work set is searched)
         W = rows.numel()
-        if same:  # the old table, its changed rows written over
-            nb_new, mask_new = T.nb, T.mask
-            if k2 > k:
-                nb_new = torch.cat([nb_new, T.rows.unsqueeze(1).expand(W, k2 - k)], 1)
-                mask_new = torch.cat([mask_new, torch.zeros((W, k2 - k), dtype=torch.bool, device=dev)], 1)
-            # else in place: the table's arrays are read by no one else (selections gather copies)
-        else:
-            nb_new = torch.empty((W, k2), dtype=nb.dtype, device=dev)
-            mask_new = torch.empty((W, k2), dtype=torch.bool, device=dev)
+        old_at = None if same else T.slot.index_select(0, rows).clamp_(min=0)
+        nb_new, mask_new = (T.nb, T.mask) if same else (T.nb.index_select(0, old_at), T.mask.index_select(0, old_at))
+        if k2 > k:
+            nb_new = torch.cat([nb_new, rows.unsqueeze(1).expand(W, k2 - k)], 1)
+            mask_new = torch.cat([mask_new, torch.zeros((W, k2 - k), dtype=torch.bool, device=dev)], 1)
         if S:
             at = torch.searchsorted(rows, srows)
             nb_new.index_copy_(0, at, nb)
@@ -598,9 +600,10 @@ class VerletList:
             nb_new.index_copy_(0, at, qnb)
             mask_new.index_copy_(0, at, qmask)
         counts = None
-        if same and T._counts is not None:  # the rows' pair counts: the changed rows' anew
-            ch = torch.cat([srows, q])
-            counts = T._counts.clone().index_copy_(0, T.slot.index_select(0, ch), row_counts(mask_new.index_select(0, T.slot.index_select(0, ch))))
+        if T._counts is not None:  # the rows' pair counts: the changed rows' anew
+            at = torch.searchsorted(rows, torch.cat([srows, q]))
+            counts = T._counts.clone() if same else T._counts.index_select(0, old_at)
+            counts.index_copy_(0, at, row_counts(mask_new.index_select(0, at)))
         self.table = NeighbourTable(rows, nb_new, mask_new, N, slot=T.slot if same else None, counts=counts)
         # the body's rows searched now hold all their pairs with the working particles, so
         # they join the body set: the next partial rebuild keeps them instead of searching
