@@ -510,10 +510,10 @@ class VerletList:
         else:
             qnb, qmask = subset_table(x, work, self.radius + self.skin, self.domain, rows=q)
         # the body rows' new partners: the searched rows' pairs seen from the body side
-        qi = q.unsqueeze(1).expand_as(qnb)[qmask]
-        qj = qnb[qmask]
-        back = torch.nonzero(st.index_select(0, qj)).squeeze(1)
-        gain_i, gain_j = [qj.index_select(0, back)], [qi.index_select(0, back)]  # row i gains j
+        # (one pass over the searched rows' entries: their body partners, in row-major order)
+        back = torch.nonzero(st.index_select(0, qnb.view(-1)).logical_and_(qmask.view(-1))).squeeze(1)
+        gain_i = [qnb.view(-1).index_select(0, back)]  # row i gains j
+        gain_j = [q.index_select(0, torch.div(back, max(qnb.shape[1], 1), rounding_mode="floor"))]
         # the pairs between static rows of two groups (which move apart): each smaller group's
         # rows searched among the other groups' static particles only; the largest group's rows
         # gain their partners found so (a smaller group's rows find their pairs with each other)

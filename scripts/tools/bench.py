@@ -97,12 +97,14 @@ def main(argv=None):
     ap.add_argument("--ref", default="b14e316", help="reference commit for --deposition")
     ap.add_argument("--steps", type=int, default=100, help="--deposition: timed steps on the preview state")
     ap.add_argument("--full-steps", type=int, default=50, help="--deposition: timed first steps of the full scene")
-    ap.add_argument("--states", nargs="*", default=["preview", "full"], choices=("preview", "full"))
+    ap.add_argument("--states", nargs="*", default=["preview", "full", "developed"], choices=("preview", "full", "developed"))
+    ap.add_argument("--t-developed", type=float, default=0.003,
+                    help="--deposition: the full scene's developed state, run to this time by the reference (s)")
     a = ap.parse_args(argv)
     if a.deposition:
         from bench_deposition import run
 
-        run(a.ref, a.steps, a.full_steps, a.states)
+        run(a.ref, a.steps, a.full_steps, a.states, t_developed=a.t_developed)
         return
     nxs = a.nx or ([50] if a.quick else [50, 100, 200])
     devices = a.device or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])

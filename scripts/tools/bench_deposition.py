@@ -13,6 +13,10 @@ temporary git worktree and removed afterwards. States:
   the table of the highest temperature and melt volume at 10 and 20 ms.
 - **full, first steps**: ``cases/perpendicular_350W`` at dx = 0.1 mm (733 600 particles) built
   afresh, steps 2..11 counted for host syncs, then ``--full-steps`` timed steps.
+- **full, developed** (``--t-developed``, default 3 ms: melt since step ~18, the melt's acoustic
+  step limit, the heated zone grown over ~600 steps): the full scene run to that time by the
+  reference code, its checkpoint cached as the preview's (the reference takes ~15 min for it,
+  once); both codes restart from it as from the preview state, then ``--full-steps`` timed steps.
 
 Columns: ms per step over the timed steps (rebuilds included), the median plain step, the
 extra cost of a step that rebuilds the neighbour list (all of them, then split into those that kept
@@ -66,6 +70,17 @@ def preview_checkpoint(tree: Path, t: float) -> Path:
         print(f"# {tree_key(tree)}: running the preview to t = {t:g} s for its state (cached in {out})", flush=True)
         subprocess.run([sys.executable, "-m", "torchsph", "cases/perpendicular_350W", "--preview", "--t-end",
                         str(t), "--quiet", "--out", str(out)] + same_model(tree), cwd=tree, env=env1(), check=True)
+    return ck
+
+
+def developed_checkpoint(tree: Path, t: float) -> Path:
+    """The full scene run to ``t`` by the code of ``tree`` (cached)."""
+    out = CACHE / tree_key(tree) / f"full_t{t:g}"
+    ck = out / "checkpoint.pt"
+    if not ck.exists():
+        print(f"# {tree_key(tree)}: running the full scene to t = {t:g} s for its state (cached in {out})", flush=True)
+        subprocess.run([sys.executable, "-m", "torchsph", "cases/perpendicular_350W", "--t-end", str(t), "--quiet",
+                        "--out", str(out)] + same_model(tree), cwd=tree, env=env1(), check=True)
     return ck
 
 
@@ -129,10 +144,12 @@ def row(state, code, r, ref=None):
             f"{fmt(r['syncs_per_rebuild_step'], '.0f')} | {ratio} |")
 
 
-def run(ref: str, steps: int, full_steps: int, states=("preview", "full"), t_state: float = 0.03):
+def run(ref: str, steps: int, full_steps: int, states=("preview", "full", "developed"), t_state: float = 0.03,
+        t_developed: float = 0.003):
     head = tree_key(ROOT)
     print(f"# deposition step: this tree ({head}) against {ref}, 1 thread; "
-          f"preview state at t = {t_state:g} s, {steps} steps; full scene's first {full_steps} steps")
+          f"preview state at t = {t_state:g} s, {steps} steps; full scene's first {full_steps} steps; "
+          f"the full scene at t = {t_developed:g} s, {full_steps} steps")
     with tempfile.TemporaryDirectory(prefix="torchsph-ref-") as tmp:
         wt = Path(tmp) / "ref"
         git("worktree", "add", "--detach", str(wt), ref)
@@ -145,6 +162,8 @@ def run(ref: str, steps: int, full_steps: int, states=("preview", "full"), t_sta
                         own = preview_checkpoint(tree, t_state)  # to t_state gives the physics table
                         results[state, name] = measure(tree, "preview", steps, preview_checkpoint(wt, t_state)
                                                        if name == "this" else own)
+                    elif state == "developed":  # both codes on the reference's state
+                        results[state, name] = measure(tree, "preview", full_steps, developed_checkpoint(wt, t_developed))
                     else:
                         results[state, name] = measure(tree, "full", full_steps)
                     print(f"# {state} {name}: {json.dumps(results[state, name])}", flush=True)
@@ -158,6 +177,7 @@ def run(ref: str, steps: int, full_steps: int, states=("preview", "full"), t_sta
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for state in states:
         ref_r = results[state, "ref"]
-        print(row(state, ref, ref_r))
-        print(row(state, head, results[state, "this"], ref_r))
+        label = f"full, t = {t_developed * 1e3:g} ms" if state == "developed" else state
+        print(row(label, ref, ref_r))
+        print(row(label, head, results[state, "this"], ref_r))
     return results
