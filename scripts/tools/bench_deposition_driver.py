@@ -2,6 +2,7 @@
 tree ``--tree`` (this repository, or a reference commit's worktree). Prints one JSON line.
 
     python scripts/tools/bench_deposition_driver.py --tree DIR preview --checkpoint CK [--steps N]
+        (any run's checkpoint: the preview's, or the full scene's developed state)
     python scripts/tools/bench_deposition_driver.py --tree DIR full [--steps N] [--set key=value ...]
 
 It uses only what every version since b14e316 offers (``load_case``, ``make_simulation``,
