@@ -29,9 +29,9 @@ PARTS = ("first_half", "close_momentum", "close_energy")
 
 def timed(sim, n):
     out = timed_steps(sim, run_steps, n)
-    plain = [t for t, r in out if not r]
-    reb = [t for t, r in out if r]
-    return {"ms_per_step": 1e3 * sum(t for t, _ in out) / n,
+    plain = [t for t, r, _ in out if not r]
+    reb = [t for t, r, _ in out if r]
+    return {"ms_per_step": 1e3 * sum(t for t, _, _ in out) / n,
             "plain_ms": 1e3 * statistics.median(plain) if plain else float("nan"),
             "rebuilds": len(reb), "rebuild_step_ms": 1e3 * statistics.mean(reb) if reb else float("nan")}
 
