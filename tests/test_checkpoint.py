@@ -170,3 +170,52 @@ def test_sigkill_while_writing_keeps_the_previous_checkpoint(tmp_path):
     assert after["step"] == before["step"] == 4
     for k in before["state"]:
         assert torch.equal(before["state"][k], after["state"][k])
+
+
+@pytest.mark.parametrize("where", ["checkpoint", "snapshot"])
+def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_last_checkpoint(tmp_path, monkeypatch, capsys, where):
+    """The disk fills while a checkpoint (or a snapshot) is written: the run stops with exit 4
+    and one line naming the file, the operating system's reason and the checkpoint to go on
+    from; no temporary file is left; the previous checkpoint loads as it was; and the run goes
+    on from it once there is room."""
+    import errno
+
+    import h5py
+
+    from torchsph import io as sio
+    from torchsph.__main__ import main
+
+    base = [str(CASES / "poiseuille_2d"), "--out", str(tmp_path), "--quiet", "--set", "scene.n_height=20",
+            "--set", "run.output_interval_s=1e-5"]
+    assert main([*base, "--steps", "4"]) == 0
+    before = ckpt.load(tmp_path / "checkpoint.pt")
+    full = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    if where == "checkpoint":  # the disk fills after the temporary file was written, before its rename
+        def fsync(fd):
+            raise full
+        monkeypatch.setattr(ckpt.os, "fsync", fsync)
+    else:  # the snapshot's file cannot be made
+        real = h5py.File
+
+        def File(name, mode="r", *a, **k):
+            if mode == "w":
+                raise full
+            return real(name, mode, *a, **k)
+        monkeypatch.setattr(sio.h5py, "File", File)
+    capsys.readouterr()
+    code = main([*base, "--steps", "40", "--checkpoint-every", "2", "--restart", str(tmp_path / "checkpoint.pt")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 4
+    assert len(err) == 1, err
+    line = err[0]
+    assert "could not write" in line and os.strerror(errno.ENOSPC) in line
+    assert ("checkpoint.pt" if where == "checkpoint" else ".h5") in line.split("(")[0]
+    assert f"--restart {tmp_path / 'checkpoint.pt'}" in line
+    assert not list(tmp_path.glob("*.tmp"))
+    after = ckpt.load(tmp_path / "checkpoint.pt")
+    assert after["step"] == before["step"] == 4
+    for k in before["state"]:
+        assert torch.equal(before["state"][k], after["state"][k])
+    monkeypatch.undo()  # room again: the run goes on from the checkpoint
+    assert main([*base, "--steps", "2", "--restart", str(tmp_path / "checkpoint.pt")]) == 0
+    assert ckpt.load(tmp_path / "checkpoint.pt")["step"] == 6

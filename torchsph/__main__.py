@@ -9,6 +9,7 @@ from pathlib import Path
 
 from .checkpoint import CheckpointError
 from .config import CaseError, load_case
+from .io import OutputError
 from .simulation import SimulationError, UnstableStepError
 
 
@@ -135,6 +136,12 @@ def main(argv=None) -> int:
                 f"a smaller step: --set numerics.cfl=...)") if ck.exists() else ""
         print(f"torchsph: stopped{_rank_tag()}: {e}{hint}", file=sys.stderr)
         return _abort_others(3)
+    except OutputError as e:  # a full disk, a lost mount: the files it would replace are as they were
+        ck = out / "checkpoint.pt"
+        hint = (f"; the last checkpoint {ck} is intact: make room and go on with --restart {ck}" if ck.exists()
+                else "; no checkpoint was written yet")
+        print(f"torchsph: stopped{_rank_tag()}: {e}{hint}", file=sys.stderr)
+        return _abort_others(4)
     except KeyboardInterrupt as e:
         print(f"torchsph: {e or 'interrupted'}", file=sys.stderr)
         return 130

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from .io import written
 from .neighbors import NeighbourTable
 from .state import ParticleState
 from .terms import available as available_terms
@@ -225,19 +226,19 @@ ENVELOPE = "torchsph-checkpoint"  # the file: {ENVELOPE: 1, "sha256": digest of 
 def write(d: dict, path: str | Path):
     """Write a checkpoint dict atomically: serialised with its SHA-256, to ``NAME.tmp``,
     fsynced, renamed over ``NAME``; a damaged file is then told apart from a good one."""
-    path = Path(path)
     buf = io.BytesIO()
     torch.save(d, buf)
     data = buf.getvalue()
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        torch.save({ENVELOPE: 1, "sha256": hashlib.sha256(data).hexdigest(), "data": data}, f)
-        f.flush()
-        os.fsync(f.fileno())
-        delay = float(os.environ.get("TORCHSPH_CHECKPOINT_TEST_DELAY_S", "0"))  # tests kill mid-write
-        if delay > 0:
-            time.sleep(delay)
-    os.replace(tmp, path)
+
+    def put(tmp):
+        with open(tmp, "wb") as f:
+            torch.save({ENVELOPE: 1, "sha256": hashlib.sha256(data).hexdigest(), "data": data}, f)
+            f.flush()
+            os.fsync(f.fileno())
+            delay = float(os.environ.get("TORCHSPH_CHECKPOINT_TEST_DELAY_S", "0"))  # tests kill mid-write
+            if delay > 0:
+                time.sleep(delay)
+    written(Path(path), put)  # (a failed write leaves the previous checkpoint as it was: OutputError)
 
 
 def read(path: str | Path) -> dict:

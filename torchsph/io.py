@@ -27,6 +27,39 @@ DATASETS = {
 }
 
 
+class OutputError(RuntimeError):
+    """An output file (snapshot, checkpoint, sidecar) could not be written: the message names
+    the file and the cause in one line. The file it was to replace is left as it was."""
+
+
+def _cause(e: BaseException) -> str:
+    """The operating system's reason behind ``e`` where there is one (a full disk reached
+    through torch's or h5py's own errors), else ``e``'s first line."""
+    seen = e
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.strerror:
+            return seen.strerror
+        seen = seen.__cause__ or seen.__context__
+    return f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+
+
+def written(path: Path, write, tmp: Path | None = None):
+    """``write(tmp)``, then ``tmp`` renamed over ``path`` (atomic). Where writing fails (a full
+    disk, a lost mount) the temporary file is removed and :class:`OutputError` is raised:
+    ``path`` is left as it was."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp") if tmp is None else tmp
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except Exception as e:  # noqa: BLE001 - any failure of the write: said in one line
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        raise OutputError(f"could not write {path} ({_cause(e)})") from e
+
+
 def _as3(a: np.ndarray) -> np.ndarray:
     """Pad (N, 2) vectors to (N, 3) so that ParaView reads 2-D runs as XYZ / 3-vectors."""
     if a.ndim == 2 and a.shape[1] == 2:
@@ -48,14 +81,15 @@ def snapshot_arrays(state: ParticleState) -> dict[str, np.ndarray]:
 
 def write_snapshot(path: Path, state: ParticleState, t: float, step: int):
     arrays = snapshot_arrays(state)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with h5py.File(tmp, "w") as f:
-        f.attrs["time"] = t
-        f.attrs["step"] = step
-        f.attrs["dim"] = state.dim
-        for name, a in arrays.items():
-            f.create_dataset(name, data=a)
-    os.replace(tmp, path)
+
+    def write(tmp):
+        with h5py.File(tmp, "w") as f:
+            f.attrs["time"] = t
+            f.attrs["step"] = step
+            f.attrs["dim"] = state.dim
+            for name, a in arrays.items():
+                f.create_dataset(name, data=a)
+    written(path, write)
 
 
 def read_snapshot(path) -> dict:
@@ -100,12 +134,9 @@ def write_xdmf(path: Path, snapshots: list[tuple], float_dtype):
     text = ('<?xml version="1.0" ?>\n<Xdmf Version="3.0">\n <Domain>\n'
             '  <Grid Name="run" GridType="Collection" CollectionType="Temporal">\n'
             + "\n".join(grids) + "\n  </Grid>\n </Domain>\n</Xdmf>\n")
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    written(path, lambda tmp: tmp.write_text(text))
 
 
 def write_json(path: Path, data: dict):
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
-    os.replace(tmp, path)
+    text = json.dumps(data, indent=2, sort_keys=False) + "\n"
+    written(path, lambda tmp: tmp.write_text(text))
