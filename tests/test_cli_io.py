@@ -92,3 +92,21 @@ def test_estimate_projects_the_steps_of_the_run(tmp_path):
     assert est["probe_steps"] >= 1 and est["probe_wall_s"] > 0
     assert est["projected_wall_s"] == pytest.approx(
         est["probe_wall_s"] / est["probe_steps"] * est["estimate"]["steps_left"], rel=1e-12)
+
+
+def test_the_cost_block_says_when_the_snapshots_outgrow_the_free_disk(tmp_path):
+    """The cost block gives the disk's free space beside the snapshots' size, and warns (once,
+    before the probe) when they need more than there is."""
+    from torchsph import io as sio
+    from torchsph.progress import projection_lines
+
+    free = sio.free_bytes(tmp_path / "not" / "made" / "yet")  # (the nearest existing folder's disk)
+    assert free is not None and free > 0
+    kw = dict(n_all=1000, n_active=1000, rss_gb=0.1, ranks=1, steps_left=100.0, dt_s=1e-4, dt_why="acoustic limit",
+              snapshots=10, snapshot_bytes=2**30)
+    ok = projection_lines(**kw, probe=None, disk_free=20 * 2**30)
+    assert "10 snapshots, ~10.00 GB on disk (20.00 GB free there)" in ok[1]
+    assert not any("more than the free disk" in line for line in ok)
+    short = projection_lines(**kw, probe=None, disk_free=5 * 2**30)
+    assert any("more than the free disk" in line and "output_interval_s" in line for line in short)
+    assert not any("more than the free disk" in line for line in projection_lines(**kw, probe=(10, 1.0), disk_free=5 * 2**30))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 
 import h5py
@@ -58,6 +59,17 @@ def written(path: Path, write, tmp: Path | None = None):
         except OSError:
             pass
         raise OutputError(f"could not write {path} ({_cause(e)})") from e
+
+
+def free_bytes(path: Path) -> float | None:
+    """Bytes free on the disk of ``path`` (or of its nearest existing parent); None if unknown."""
+    p = Path(path).resolve()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    try:
+        return float(shutil.disk_usage(p).free)
+    except OSError:
+        return None
 
 
 def _as3(a: np.ndarray) -> np.ndarray:

@@ -103,14 +103,21 @@ class Progress:
 
 def projection_lines(n_all: int, n_active: int, rss_gb: float | None, ranks: int, steps_left: float,
                      dt_s: float, dt_why: str, snapshots: int, snapshot_bytes: float,
-                     probe: tuple[int, float] | None, threads: str | None = None) -> list[str]:
+                     probe: tuple[int, float] | None, threads: str | None = None,
+                     disk_free: float | None = None) -> list[str]:
     """The cost block printed before a run (and by ``--estimate``). ``probe``: (steps, wall
-    seconds) of a short probe, or None before it; ``threads``: how many CPU threads, and why."""
+    seconds) of a short probe, or None before it; ``threads``: how many CPU threads, and why;
+    ``disk_free``: bytes free where the run writes (None: not known)."""
+    need = snapshots * snapshot_bytes
     out = [f"cost: {n_all:,} particles ({n_active:,} integrated now) on {ranks} process"
            + ("es" if ranks > 1 else "") + (f", {threads}" if threads else "")
            + (f"; memory {rss_gb:.2f} GB peak so far per process" if rss_gb is not None else ""),
            f"cost: ~{steps_left:,.0f} steps to the end at dt ~ {dt_s:.3g} s ({dt_why}); "
-           f"{snapshots} snapshots, ~{snapshots * snapshot_bytes / GB:.2f} GB on disk"]
+           f"{snapshots} snapshots, ~{need / GB:.2f} GB on disk"
+           + (f" ({disk_free / GB:.2f} GB free there)" if disk_free is not None else "")]
+    if probe is None and disk_free is not None and need > disk_free:  # (said once, before the probe)
+        out.append("cost: the snapshots need more than the free disk: the run will stop when it fills (its last "
+                   "checkpoint kept); make room, or write fewer: --set run.output_interval_s=...")
     if probe is not None:
         k, wall = probe
         per = wall / max(k, 1)

@@ -385,7 +385,8 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
               int(max((t_end or sim.t) - sim.t, 0.0) / interval) if math.isfinite(interval) else 0) + 1
     snap_bytes = n_all * sum(a.nbytes for a in sio.snapshot_arrays(sim.state).values()) / max(sim.state.n, 1)
     cost = dict(n_all=n_all, n_active=n_act, rss_gb=peak_rss_gb(), ranks=procs.ranks, steps_left=steps_left,
-                dt_s=dt_exp, dt_why=dt_why, snapshots=n_snap, snapshot_bytes=snap_bytes, threads=threads)
+                dt_s=dt_exp, dt_why=dt_why, snapshots=n_snap, snapshot_bytes=snap_bytes, threads=threads,
+                disk_free=sio.free_bytes(out_dir))
     if root and announce and (progress or estimate):
         for line in projection_lines(**cost, probe=None):
             print(line, file=sys.stderr, flush=True)
