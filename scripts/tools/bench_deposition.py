@@ -13,8 +13,8 @@ temporary git worktree and removed afterwards. States:
   the table of the highest temperature and melt volume at 10 and 20 ms.
 - **full, first steps**: ``cases/perpendicular_350W`` at dx = 0.1 mm (733 600 particles) built
   afresh, steps 2..11 counted for host syncs, then ``--full-steps`` timed steps.
-- **full, developed** (``--t-developed``, default 3 ms: melt since step ~18, the melt's acoustic
-  step limit, the heated zone grown over ~600 steps): the full scene run to that time by the
+- **full, developed** (``--t-developed``, default 3 ms: 14 melt particles, the melt's acoustic
+  step limit, the heated zone grown over 510 steps): the full scene run to that time by the
   reference code, its checkpoint cached as the preview's (the reference takes ~15 min for it,
   once); both codes restart from it as from the preview state, then ``--full-steps`` timed steps.
 
