@@ -110,3 +110,18 @@ def test_the_cost_block_says_when_the_snapshots_outgrow_the_free_disk(tmp_path):
     short = projection_lines(**kw, probe=None, disk_free=5 * 2**30)
     assert any("more than the free disk" in line and "output_interval_s" in line for line in short)
     assert not any("more than the free disk" in line for line in projection_lines(**kw, probe=(10, 1.0), disk_free=5 * 2**30))
+
+
+def test_the_projection_says_it_is_a_lower_bound_where_melt_is_to_come():
+    """A probe taken before the melt (the step limit is the melt's, "once melt flows") or
+    where heat will spread over more particles projects too little: the line says why."""
+    from torchsph.progress import projection_lines
+
+    kw = dict(n_all=1000, n_active=1000, rss_gb=0.1, ranks=1, steps_left=100.0, dt_s=1e-4, snapshots=1,
+              snapshot_bytes=1.0, probe=(10, 1.0))
+    plain = projection_lines(**kw, dt_why="acoustic limit")[2]
+    assert "lower bound" not in plain and "projected wall time 10 s" in plain
+    melt = projection_lines(**kw, dt_why="acoustic limit, once melt flows")[2]
+    assert "(a lower bound: the probe ran before the melt" in melt
+    both = projection_lines(**{**kw, "n_active": 100}, dt_why="acoustic limit, once melt flows")[2]
+    assert "before the melt" in both and "10x as many particles may come to work" in both

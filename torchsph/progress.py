@@ -122,10 +122,15 @@ def projection_lines(n_all: int, n_active: int, rss_gb: float | None, ranks: int
         k, wall = probe
         per = wall / max(k, 1)
         total = per * steps_left
+        low = []  # why the probe's steps cost less than the run's will
+        if "once melt flows" in dt_why:
+            low.append("the probe ran before the melt, and a step with melt costs more: 5x on the deposition "
+                       "preview")
+        if 0 < n_active < 0.5 * n_all:
+            low.append(f"where heat spreads {n_all / n_active:.0f}x as many particles may come to work")
         out.append(f"cost: probe {k} steps in {wall:.2f} s ({1e3 * per:.1f} ms/step): projected wall time "
                    f"{hms(total)} on this machine at today's work per step"
-                   + (f" (a lower bound where heat spreads: {n_all / n_active:.0f}x as many particles may come "
-                      "to work)" if 0 < n_active < 0.5 * n_all else ""))
+                   + (f" (a lower bound: {'; '.join(low)})" if low else ""))
         if total > 3600:
             out.append("cost: over an hour. Cheaper: --preview (the case's coarse variant), more ranks "
                        "(mpirun -n K), --device cuda, a coarser --set scene.dx_m=..., or --t-end / --steps "
