@@ -351,6 +351,34 @@ def test_rigid_geometry_kept_across_rebuilds_equals_recomputing_it():
     assert worst["zeta"] < 1e-12 and worst["area"] < 1e-12 and worst["normal"] < 1e-9, worst
 
 
+def test_two_selections_before_an_evaluation_keep_the_cached_geometry():
+    """A phase change selects the pairs again at a step's end; when the next step starts with a
+    neighbour rebuild, its selection comes before any evaluation of zeta and the area. What the
+    first selection kept still holds where it says so: zeta and the area are made for the rows
+    that can have changed only (before, every row again: 0.6-2 s of the full scene's zeta),
+    and they equal making every row afresh to round-off."""
+    cfg = small("scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1")
+    _, sim = make_simulation(cfg)
+    run_steps(sim, steps=40)
+    th = sim.thermal
+    sim.select_pairs()  # as at a phase change
+    sim.refresh_pairs(force=True)  # then a rebuild, before any evaluation
+    assert th.zeta_prev is not None and th.area_prev is not None
+    sizes = []
+    fn = th._zeta_fn
+    th._zeta_fn = lambda x, m, rho, rows, nb, *a: (sizes.append(rows.numel()), fn(x, m, rho, rows, nb, *a))[1]
+    ok_z, ok_a, normal = th.zeta_ok, th.area_ok, th.normal
+    z, area = th.zeta(sim.state), th.surface_area(sim.state)
+    kept_normal = th.normal
+    assert sizes and sizes[0] < th.rows.numel(), (sizes, th.rows.numel())
+    th.zeta_prev = th.area_prev = th.normal_prev = None  # the same rows, computed afresh
+    th.zeta_ok, th.area_ok, th.normal = ok_z, ok_a, normal
+    z_full, area_full = th.zeta(sim.state), th.surface_area(sim.state)
+    assert float((z - z_full).abs().max()) < 1e-12
+    assert float((area - area_full).abs().max()) < 1e-12 * float(area_full.abs().max())
+    assert float((kept_normal - th.normal).abs().max()) < 1e-9
+
+
 @pytest.mark.parametrize("heated", [False, True], ids=["cold_solid_left_out", "every_particle_working"])
 def test_the_rebuild_check_on_its_few_rows_sees_the_largest_displacement(heated):
     """The neighbour rebuild is decided on the fluid, the walls, the particles whose rigid body
