@@ -504,16 +504,17 @@ class Conduction:
         """Per-particle Laplacian normalisation, used where it lies in [0.95, 1.05] (else 1): it corrects the
         interior lattice error only; where the kernel is truncated (a free surface,
         zeta ~ 0.5) the plain SPH operator, which acts as an insulated boundary, is kept.
-        Walls count as 1."""
+        Walls, and particles outside the rows (an active set's frozen halo), count as 1."""
         sub, prev = self._rows_to_compute("zeta")
         rows, nb = rows_and_table(self, sub)
         z = by_rows(lambda r, t: self._zeta_fn(state.x, state.m, state.rho, r, t, self.kernel, self.h, self.domain),
                     rows, nb)
         z = torch.where((z > 0.95) & (z < 1.05), z, torch.ones_like(z))
         in_rows = self._computed("zeta", state.n)
-        if prev is not None:  # as computed whole: 1 on walls, 0 off the rows
-            return torch.where(in_rows, prev, self.wall_mask.to(z.dtype)).index_copy(0, rows, z)
-        return embed(rows, z, state.n) + self.wall_mask.to(z.dtype)
+        # off the rows 1 (walls, and the frozen halo of an active set: a frontier row's pair with a
+        # halo particle reads its zeta; at 0 it had twice its conductance, 2 / (zeta_i + 0))
+        one = torch.ones(state.n, dtype=z.dtype, device=z.device)
+        return torch.where(in_rows, prev, one).index_copy(0, rows, z) if prev is not None else one.index_copy(0, rows, z)
 
     def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False, rows_only: bool = False):
         """Heat per particle (W; ``rows_only``: of ``rows`` only): conduction V_i div(k grad T),
