@@ -198,8 +198,8 @@ def test_partial_rebuild_holds_exactly_the_pairs_of_a_full_build(seed, with_work
 @given(st.integers(0, 2**31 - 1), st.sampled_from([2, 3]), st.floats(0.02, 0.3))
 def test_active_set_dilation_holds_every_particle_within_the_radius(seed, dim, radius):
     """The active set's dilation (torchsph/active.py): every particle within ``radius`` of a
-    seed is taken in (brute force), none beyond 2 sqrt(3) radius; the dense voxel grid (max-pool)
-    and the sparse voxel keys give the same set."""
+    seed is taken in (brute force), none beyond (1 + 1/k) sqrt(dim) radius (k voxels per radius:
+    each axis's reach); the dense voxel grid (running sums) and the sparse voxel keys give the same set."""
     import torchsph.active as A
 
     g = torch.Generator().manual_seed(seed)
@@ -216,6 +216,6 @@ def test_active_set_dilation_holds_every_particle_within_the_radius(seed, dim, r
     if seed_mask.any():
         d = torch.cdist(x, x[seed_mask]).min(1).values
         assert bool(dense[d < radius].all())
-        assert not bool(dense[d > 2 * radius * 3 ** 0.5].any())
+        assert not bool(dense[d > (1.0 + 1.0 / A.VOXELS_PER_RADIUS) * radius * dim ** 0.5].any())
     else:
         assert not bool(dense.any())

@@ -22,50 +22,68 @@ in a scene without fixed-temperature walls).
 """
 from __future__ import annotations
 
-import itertools
 import math
 
 import torch
 
 
-DENSE_VOXELS = 1 << 24  # voxel grids up to this size are dilated densely (max-pool)
+DENSE_VOXELS = 1 << 24  # voxel grids up to this size are dilated densely (running sums)
+# voxels per dilation radius: a particle is taken in when its voxel is within this many voxels
+# of a seed's along every axis, so up to (1 + 1 / VOXELS_PER_RADIUS) radius away along an axis.
+# At 2 (stop 45 and before) the full scene's first work set held 54 220 particles and a step
+# took 20.9 ms; at 4, 47 020 and 17.2 ms (the same conservative bound: every particle within
+# the radius is in; measured on the first 20 steps, one thread)
+VOXELS_PER_RADIUS = 4
+
+
+def _grow_keys(keys: torch.Tensor, mult: list[int], dims: list[int], k: int) -> torch.Tensor:
+    """Voxel keys (unique) grown by up to ``k`` voxels along each axis in turn (a cube)."""
+    for m, d in zip(mult, dims):
+        coord = (keys // m) % d
+        offs = torch.arange(-k, k + 1, device=keys.device)
+        nc = coord.unsqueeze(1) + offs.unsqueeze(0)
+        ok = (nc >= 0) & (nc < d)
+        keys = torch.unique((keys.unsqueeze(1) + offs.unsqueeze(0) * m)[ok])
+    return keys
 
 
 def dilate(x: torch.Tensor, seed: torch.Tensor, radius: float) -> torch.Tensor:
-    """Mask of the particles within ``radius`` of a seed particle (voxels of radius / 2:
-    it may include some up to 2 radius further). No loop over particles: a loop over the
-    (2k + 1)^d voxel offsets only. The voxel grid spans the seeds' bounding box grown by the
-    radius, not the scene: its cost follows the heated zone."""
+    """Mask of the particles within ``radius`` of a seed particle (voxels of radius /
+    :data:`VOXELS_PER_RADIUS`: it may include some up to (1 + 1 / VOXELS_PER_RADIUS) radius
+    further along each axis). No loop over particles: the cube of voxels is grown one axis at
+    a time (a window of width 2k + 1 along each). The voxel grid spans the seeds' bounding
+    box grown by the radius, not the scene: its cost follows the heated zone."""
     if radius <= 0 or not bool(seed.any()) or bool(seed.all()):
         return seed.clone()
-    cell = 0.5 * radius
-    k = math.ceil(radius / cell)
+    k = VOXELS_PER_RADIUS
+    cell = radius / k
     # voxels on a fixed grid (not from the local bounding box), so that a process holding
     # part of the particles grows the same sets as one holding all of them
     c = torch.floor(x / cell).long()
     cs = c[seed]
     lo, hi = cs.min(0).values - k, cs.max(0).values + k
     box = torch.nonzero(((c >= lo) & (c <= hi)).all(1)).squeeze(1)  # the only particles that can be reached
-    c = c.index_select(0, box) - lo + k  # >= k, so offsets stay non-negative
-    dims = (hi - lo + 2 * k + 1).tolist()
+    c = c.index_select(0, box) - lo  # >= 0
+    dims = (hi - lo + 1).tolist()
     mult = [1] * len(dims)
     for a in range(len(dims) - 2, -1, -1):
         mult[a] = mult[a + 1] * dims[a + 1]
-    mult_t = torch.tensor(mult, device=x.device)
-    key = (c * mult_t).sum(-1)
+    key = (c * torch.tensor(mult, device=x.device)).sum(-1)
     seed_b = seed.index_select(0, box)
     out = torch.zeros_like(seed)
     if x.shape[1] in (2, 3) and math.prod(dims) <= DENSE_VOXELS:
-        # a dense voxel grid: the same cube of offsets as a max-pool of width 2k + 1
-        grid = torch.zeros(math.prod(dims), dtype=torch.float32, device=x.device)
-        grid.index_fill_(0, key[seed_b], 1.0)
-        pool = torch.nn.functional.max_pool3d if x.shape[1] == 3 else torch.nn.functional.max_pool2d
-        grown = pool(grid.view(1, 1, *dims), 2 * k + 1, stride=1, padding=k).reshape(-1)
-        return out.index_fill_(0, box[grown.index_select(0, key) > 0], True)
-    sk = torch.unique(key[seed_b])
-    coords = torch.stack([(sk // m) % dmax for m, dmax in zip(mult, dims)], -1)
-    offs = torch.tensor(list(itertools.product(range(-k, k + 1), repeat=x.shape[1])), device=x.device)
-    grown = torch.unique(((coords.unsqueeze(1) + offs.unsqueeze(0)) * mult_t).sum(-1).reshape(-1))
+        # a dense voxel grid: the cube of offsets grown one axis at a time, each a window sum of
+        # width 2k + 1 from a running sum (4-5x faster on the CPU than max-pools, the same set)
+        grid = torch.zeros(math.prod(dims), dtype=torch.int32, device=x.device)
+        grid.index_fill_(0, key[seed_b], 1)
+        g = grid.view(*dims)
+        for a in range(len(dims)):
+            pad = [0] * (2 * len(dims))
+            pad[2 * (len(dims) - 1 - a)], pad[2 * (len(dims) - 1 - a) + 1] = k + 1, k
+            run = torch.cumsum(torch.nn.functional.pad(g, pad), a, dtype=torch.int32)
+            g = (run.narrow(a, 2 * k + 1, dims[a]) - run.narrow(a, 0, dims[a]) > 0).to(torch.int32)
+        return out.index_fill_(0, box[g.reshape(-1).index_select(0, key) > 0], True)
+    grown = _grow_keys(torch.unique(key[seed_b]), mult, dims, k)
     return out.index_fill_(0, box[torch.isin(key, grown)], True)
 
 
