@@ -2,6 +2,7 @@
 plain Cleary-Monaghan pair sum over the neighbour table (thermal.conduction_pairs), at the
 same state: on a random cloud, through melting and refreezing between neighbour builds, and
 through a deposition run with melt, feed and partial rebuilds."""
+import pytest
 import torch
 
 from conftest import CASES
@@ -351,12 +352,18 @@ def test_a_window_waits_and_conserves_energy_and_a_restart_inside_it_is_bit_for_
     restarts_bit_for_bit(sim, cfg, tmp_path)
 
 
-def test_the_changed_entries_found_from_the_rows_are_those_of_the_whole_pass():
+@pytest.mark.parametrize("share", [0, None], ids=["always_by_rows", "by_rows_where_fewer"])
+def test_the_changed_entries_found_from_the_rows_are_those_of_the_whole_pass(share, monkeypatch):
     """A build after the first finds the entries with a changed particle from the changed
     particles' rows and their partners' (a binary search in each partner's row), not by a pass
     over every entry: the same entries, for none, a few and many changed particles, and a
-    changed particle that is a column without a row (the whole pass)."""
+    changed particle that is a column without a row (the whole pass). Once with the rows' search
+    taken however many rows changed, once with the whole pass where they hold a large share."""
+    import torchsph.heat_operator as H
     from torchsph.heat_operator import changed_entries
+
+    if share is not None:
+        monkeypatch.setattr(H, "WHOLE_PASS_SHARE", share)
 
     _, sim = make_simulation(small("scene.source_power_W=150.0", "numerics.conduction_window=0.0"))
     run_steps(sim, steps=20)
