@@ -450,10 +450,7 @@ class Conduction:
         for name in ("zeta", "area"):
             ok = getattr(self, f"{name}_ok")
             val = getattr(self, f"{name}_cache", None)
-            if val is None:  # a selection whose values were not made yet (a phase change's, then a
-                # rebuild): the values it kept still hold where ``ok`` says so (without this, every
-                # row was made again: 0.6-2 s of the full scene's zeta)
-                val = getattr(self, f"{name}_prev", None)
+            val = getattr(self, f"{name}_prev", None) if val is None else val  # (2 selections, 0 evaluations: kept)
             keep = ok is not None and val is not None and ok.shape[0] == n
             setattr(self, f"{name}_ok", ok & self.rigid if keep else None)
             setattr(self, f"{name}_prev", val if keep else None)
@@ -507,13 +504,10 @@ class Conduction:
         Walls, and particles outside the rows (an active set's frozen halo), count as 1."""
         sub, prev = self._rows_to_compute("zeta")
         rows, nb = rows_and_table(self, sub)
-        z = by_rows(lambda r, t: self._zeta_fn(state.x, state.m, state.rho, r, t, self.kernel, self.h, self.domain),
-                    rows, nb)
+        z = by_rows(lambda r, t: self._zeta_fn(state.x, state.m, state.rho, r, t, self.kernel, self.h, self.domain), rows, nb)
         z = torch.where((z > 0.95) & (z < 1.05), z, torch.ones_like(z))
         in_rows = self._computed("zeta", state.n)
-        # off the rows 1 (walls, and the frozen halo of an active set: a frontier row's pair with a
-        # halo particle reads its zeta; at 0 it had twice its conductance, 2 / (zeta_i + 0))
-        one = torch.ones(state.n, dtype=z.dtype, device=z.device)
+        one = torch.ones(state.n, dtype=z.dtype, device=z.device)  # off the rows (at 0 a halo pair had twice its g)
         return torch.where(in_rows, prev, one).index_copy(0, rows, z) if prev is not None else one.index_copy(0, rows, z)
 
     def power(self, state: ParticleState, T: torch.Tensor, t: float, per_particle: bool = False, rows_only: bool = False):
