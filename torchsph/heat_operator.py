@@ -153,9 +153,10 @@ def row_entries(crow: torch.Tensor, rows: torch.Tensor):
 def csr_find(crow: torch.Tensor, jl: torch.Tensor, rows: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     """The first entry of each CSR row ``rows`` whose column (``jl``, ascending within a row) is not
     below ``c`` (the row's end where none is): a binary search of all rows' brackets at once, in as
-    many rounds as the longest bracket needs (one host read; each round halves every bracket).
-    (Rounds until no bracket was left, a host read each, took 6 ms of the preview's 39 ms rebuild;
-    one search of all entries' row * C + column keys, 4.5 ms: 20 levels of random reads.)"""
+    many rounds as the longest bracket needs (one host read, not one a round; each round halves
+    every bracket). Its cost follows the rows searched (~5 ms for the preview's 61 000 at a
+    rebuild; one search of all entries' row * C + column keys instead took 4.5 ms: 20 levels of
+    random reads), hence :data:`WHOLE_PASS_SHARE`."""
     lo, hi = crow.index_select(0, rows), crow.index_select(0, rows + 1)
     if rows.numel() == 0:
         return lo
