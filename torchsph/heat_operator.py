@@ -72,26 +72,34 @@ def rows_of(x: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
     return torch.gather(x, 0, i.unsqueeze(1).expand(-1, x.shape[1]))
 
 
-# table entries (rows x width) :func:`rigid_entries` takes at once: its temporaries are ~40 bytes
-# an entry (positions of both ends, distances, indices), so a whole build of the full scene
-# once every particle works (734 k rows x 180) peaked at ~20 GB; in blocks of rows it is bounded
-# (smaller blocks are faster on the CPU too: the full scene's first refresh 575 -> 550 ms with 2^18)
+# table entries (rows x width) a pass over table rows takes at once (:func:`by_rows`): the
+# conduction matrix's rigid entries have temporaries of ~40 bytes an entry (positions of both
+# ends, distances, indices), so a whole build of the full scene once every particle works (734 k
+# rows x 180) peaked at ~20 GB; in blocks of rows it is bounded. Smaller blocks are faster on the
+# CPU too (their temporaries stay in cache): the full scene's first refresh 575 -> 550 ms with
+# 2^18 instead of 2^23, and its whole zeta (38 700 rows x 178) 0.66-1.5 s -> 0.12 s
 ENTRY_BLOCK = 1 << 18
+
+
+def by_rows(fn, *arrays: torch.Tensor):
+    """``fn(*arrays)`` for arrays of table rows (the same rows first; the last an (R, k) table),
+    taken in blocks of rows of at most :data:`ENTRY_BLOCK` table entries and joined: the same
+    result (each row's is its own, and a block's rows come after the previous block's), with
+    each block's pair temporaries small. ``fn`` returns a tensor or a tuple of them."""
+    R, kk = arrays[-1].shape[0], max(arrays[-1].shape[1], 1)
+    step = max(ENTRY_BLOCK // kk, 1)
+    if R <= step:
+        return fn(*arrays)
+    parts = [fn(*(t[a:a + step] for t in arrays)) for a in range(0, R, step)]
+    return torch.cat(parts) if isinstance(parts[0], torch.Tensor) else tuple(torch.cat(t) for t in zip(*parts))
 
 
 def rigid_entries(ri, rows, nb, mask, x_op, steady, body, kernel: Kernel, h: float, domain: Domain):
     """The rigid pairs of the table rows ``nb``, ``mask`` (of the particles ``rows``, whose
     places in the operator are ``ri``, ascending): both steady, of one body, inside the
-    kernel's support at ``x_op``. Returns (row, i, j, (1/r) dW/dr) in (row, column) order.
-    Taken in blocks of rows of at most :data:`ENTRY_BLOCK` table entries (the same entries
-    in the same order: a block's rows come after the previous block's)."""
-    R, kk = nb.shape[0], max(nb.shape[1], 1)
-    step = max(ENTRY_BLOCK // kk, 1)
-    if R <= step:
-        return rigid_block(ri, rows, nb, mask, x_op, steady, body, kernel, h, domain)
-    parts = [rigid_block(ri[a:a + step], rows[a:a + step], nb[a:a + step], mask[a:a + step], x_op, steady, body,
-                          kernel, h, domain) for a in range(0, R, step)]
-    return tuple(torch.cat(t) for t in zip(*parts))
+    kernel's support at ``x_op``. Returns (row, i, j, (1/r) dW/dr) in (row, column) order,
+    taken :func:`by_rows`."""
+    return by_rows(lambda *t: rigid_block(*t, x_op, steady, body, kernel, h, domain), ri, rows, nb, mask)
 
 
 def rigid_block(ri, rows, nb, mask, x_op, steady, body, kernel: Kernel, h: float, domain: Domain):

@@ -17,7 +17,7 @@ import torch
 from .fluid import embed, gather_nb, pair_geometry
 from .free_surface import ColourGradient, colour_gradient_pairs  # noqa: F401 (re-exported)
 from .beam import beam_power, beams_power, in_beam, reachable
-from .heat_operator import ConductionOperator, SlowSplit, row_entries
+from .heat_operator import ConductionOperator, SlowSplit, by_rows, row_entries
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import ParticleState, Phase
@@ -823,22 +823,6 @@ def select_operator(th, table, state: ParticleState, x_ref: torch.Tensor, new_ta
     # (also where it is kept: the operator's rows are the same, but the ghosts among the
     # conducting rows, and so the owned rows' places there, may have changed)
     return placed(th, th.op)
-
-
-# table entries a per-row pair sum takes at once (:func:`by_rows`)
-ROW_BLOCK_ENTRIES = 1 << 18
-
-
-def by_rows(fn, rows: torch.Tensor, nb: torch.Tensor) -> torch.Tensor:
-    """``fn(rows, nb)``, a per-row result of the table rows ``nb`` of ``rows``, taken in blocks of
-    rows of at most :data:`ROW_BLOCK_ENTRIES` entries: the same values (each row's sum is its
-    own), but each block's pair temporaries stay small. Made whole, the full scene's zeta on
-    its 38 700 rows x 178 made arrays of ~165 MB each and took 0.66-1.5 s; in blocks 0.12 s
-    (measured, one thread)."""
-    step = max(ROW_BLOCK_ENTRIES // max(nb.shape[1], 1), 1)
-    if rows.numel() <= step:
-        return fn(rows, nb)
-    return torch.cat([fn(rows[a:a + step], nb[a:a + step]) for a in range(0, rows.numel(), step)])
 
 
 def rows_and_table(th, sub: torch.Tensor | None = None):
