@@ -158,6 +158,12 @@ class SlabComm:
     def any(self, flag: bool) -> bool:
         return bool(self.c.allreduce(bool(flag), op=MPI.LOR))
 
+    def reduce_max(self, vals):
+        v = np.asarray(vals, dtype=np.float64)
+        out = np.empty_like(v)
+        self.c.Allreduce(v, out, op=MPI.MAX)
+        return out.tolist()
+
     def sum(self, vals):
         v = np.asarray(vals, dtype=np.float64)
         out = np.empty_like(v)
@@ -228,7 +234,7 @@ class SlabComm:
         """After a rebuild: whether some particle has moved more than half the halo's slack
         since the last migration (at the rebuild's positions, or now), over every rank. Until
         then every particle within the halo's reach of a slab stays among its ghosts until
-        the next rebuild (a Verlet interval adds at most half a skin), and the rows, the
+        the next rebuild (a Verlet interval adds at most a skin: the halo holds the skin and the slack), and the rows, the
         ghost lists and every per-rebuild cache stay."""
         x_mig = sim.nl.x_mig
         n = self.n_owned

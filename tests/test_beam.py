@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from torchsph.beam import Beam, beam_power, gaussian_fraction_in_strip
+from torchsph.beam import Beam, beam_power, beams_power, gaussian_fraction_in_strip, reachable
 from torchsph.scenes import lattice
 
 Q0, ETA, R = 300.0, 0.85, 0.75e-3
@@ -124,3 +124,26 @@ def test_beam_on_lattice_columns_at_bin_edges_keeps_its_power():
         P = float(beam_power(x, torch.ones(x.shape[0], dtype=torch.bool), b, 0.0, dx).sum())
         exact = 0.85 * 300.0 * math.erf(L / (math.sqrt(2.0) * 0.75e-3)) ** 2
         assert abs(P / exact - 1.0) < 1e-4, (n, P / exact - 1.0)
+
+
+def test_several_beams_traced_together_equal_each_traced_alone():
+    """The beams of a scene are traced in one set of operations (each on its own rows and bins):
+    the same power per particle as tracing each beam alone on its rows and summing, for beams
+    of different radii and directions, one moving, on the rows of a subset of the particles;
+    and each absorbs eta0 Q0 on the plate that covers its spot."""
+    dx = 1.0e-4
+    x = plate(70, 70, 4, dx)
+    rows = torch.nonzero(x[:, 0] > -3.2e-3).squeeze(1)  # not every particle is a row
+    beams = [beam_at(0.0), Beam(200.0, 0.8, 0.5e-3, (0.6, 0.0, -0.8), (0.8e-3, 0.4e-3, 0.0)),
+             Beam(150.0, 0.7, 0.6e-3, (0.0, -0.5, -0.866), (-0.5e-3, 0.0, 0.0), velocity=(0.02, 0.0, 0.0))]
+    t = 0.02  # the moving aim has gone 0.4 mm
+    subs = reachable(beams, x.index_select(0, rows), 0.0)
+    assert subs[2] is None and 0 < subs[1].numel() < rows.numel()
+    together = beams_power(beams, x, t, dx, subs, rows)
+    alone = torch.zeros(rows.numel(), dtype=x.dtype)
+    one = lambda m: torch.ones(m, dtype=torch.bool)  # noqa: E731
+    for b, sub in zip(beams, subs):
+        sel = torch.arange(rows.numel()) if sub is None else sub
+        alone.index_add_(0, sel, beam_power(x.index_select(0, rows.index_select(0, sel)), one(sel.numel()), b, t, dx))
+    assert torch.allclose(together, alone, rtol=1e-13, atol=0.0)
+    assert float(together.sum()) == pytest.approx(sum(b.efficiency * b.power for b in beams), rel=1e-2)

@@ -86,22 +86,57 @@ def test_table_padding_is_self():
     assert nb[0, 0] == 1 and mask[0, 0]
 
 
-def test_verlet_list_rebuilds_only_past_half_skin():
+def test_verlet_list_rebuilds_when_a_pair_may_have_changed_by_a_skin():
+    """The rebuild test bounds the change of every pair's separation by the smaller of
+    2 max |d| and the diagonal of the box of the displacements and 0: one particle that moved
+    a skin, two that moved half a skin apart, or all of them moving together a skin (the box
+    holds 0: a particle at rest might not have been checked) are due; less is not."""
     dom = Domain([0.0, 0.0], [1.0, 1.0], [True, True])
     x = torch.rand(200, 2, dtype=torch.float64)
     vl = VerletList(0.1, 0.02, dom)
     assert vl.update(x)
-    shift = torch.tensor([0.0099, 0.0], dtype=torch.float64)
-    assert not vl.update(x + shift)  # moved 0.0099 < skin / 2
-    x2 = x.clone()
-    x2[0, 0] += 0.0101
-    assert vl.update(x2)
+    e = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    assert not vl.update(x + 0.0199 * e)  # all together: no pair changed
+    assert vl.needs_rebuild(x + 0.0201 * e)
+    one = x.clone()
+    one[0] += 0.0199 * e
+    assert not vl.update(one)  # one fast particle: its pairs changed by 0.0199 < skin
+    one[0] += 0.0002 * e
+    assert vl.needs_rebuild(one)
+    two = x.clone()
+    two[0] += 0.0099 * e
+    two[1] -= 0.0099 * e
+    assert not vl.update(two)
+    two[1] -= 0.0002 * e
+    assert vl.update(two)  # 0.0101 each way: their separation may have changed by 0.0202
     # pairs of the Verlet list cover every pair within the cut-off after small motion
-    x3 = x2 + 0.004 * torch.randn_like(x2).clamp(-1, 1)
+    x3 = two + 0.004 * torch.randn_like(two).clamp(-1, 1)
     i, j = brute_force_pairs(x3, 0.1, dom)
     nb, mask = vl.nb, vl.mask
     have = {(a, int(b)) for a in range(200) for b, m in zip(nb[a], mask[a]) if m}
     assert as_set(i, j) <= have
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(0.0, 1.0), st.booleans())
+def test_no_rebuild_means_no_pair_changed_by_more_than_the_skin(seed, spread, blob):
+    """Whenever the test says no rebuild, every pair's separation changed by at most the skin
+    (brute force over all pairs), for random motion: a blob moving as one past particles at
+    rest, plus random scatter of size ``spread`` (in skins)."""
+    g = torch.Generator().manual_seed(seed)
+    dom = Domain([0.0] * 3, [1.0] * 3, [False] * 3)
+    x = torch.rand(60, 3, dtype=torch.float64, generator=g)
+    skin = 0.05
+    vl = VerletList(0.1, skin, dom)
+    vl.update(x)
+    d = spread * skin * (2 * torch.rand(60, 3, dtype=torch.float64, generator=g) - 1)
+    if blob:
+        d[:30] += skin * torch.rand(3, dtype=torch.float64, generator=g)
+    worst = float((d.unsqueeze(0) - d.unsqueeze(1)).norm(dim=-1).max())
+    if not vl.needs_rebuild(x + d):
+        assert worst <= skin * (1 + 1e-12)
+    assert vl.needs_rebuild(x + d) == (min(2 * float(d.norm(dim=-1).max()), float(
+        (d.amax(0).clamp_min(0) - d.amin(0).clamp_max(0)).norm())) > skin)
 
 
 def test_lattice_with_radius_a_multiple_of_the_spacing():

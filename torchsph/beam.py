@@ -83,40 +83,102 @@ def beam_power(x: torch.Tensor, material: torch.Tensor, beam: Beam, t: float, dx
     a decomposed run that gathers the candidates in id order shadows as one process does."""
     if x.shape[1] != 3:
         raise ValueError("beams need a 3-D scene")
-    dev, dt = x.device, x.dtype
-    depth, a, b = beam_frame(x, beam, t)
-    rho2 = a * a + b * b
-    cand = material & (rho2 < (cutoff * beam.radius) ** 2)
-    # bins of side dx centred on the candidate nearest the axis: on a lattice seen along an
-    # axis every column then sits at a bin centre (bins with edges on the columns split
-    # them by round-off, leaving empty bins whose power nobody absorbed: -51 % was seen).
-    # Fixed shapes, no read to the host: every row is binned on a grid of (2M + 1)^2 bins
-    # that covers the traced disc around that centre; the rows that are no candidates go
-    # to one extra bin that nothing is taken from.
-    k0 = torch.argmin(torch.where(cand, rho2, torch.full_like(rho2, math.inf))).view(1)
-    a0, b0 = a.index_select(0, k0), b.index_select(0, k0)
-    ia = torch.floor((a - a0) / dx + 0.5).long()
-    ib = torch.floor((b - b0) / dx + 0.5).long()
-    M = int(math.ceil(2.0 * cutoff * beam.radius / dx)) + 1
-    side = 2 * M + 1
-    nbin = side * side
-    key = torch.where(cand, (ia + M).clamp(0, side - 1) * side + (ib + M).clamp(0, side - 1),
-                      torch.full_like(ia, nbin))
-    dmin = torch.full((nbin + 1,), math.inf, dtype=dt, device=dev).scatter_reduce(
-        0, key, torch.where(cand, depth, torch.full_like(depth, math.inf)), "amin")
-    front = cand & (depth == dmin.index_select(0, key))
-    big = torch.iinfo(torch.long).max
-    key_i = torch.arange(x.shape[0], device=dev) if ids is None else ids
-    first = torch.full((nbin + 1,), big, dtype=torch.long, device=dev).scatter_reduce(
-        0, key, torch.where(front, key_i, torch.full_like(key_i, big)), "amin")
-    lit = front & (key_i == first.index_select(0, key))
-    # midpoint rule: the intensity at the bin centre times the bin area (sampling at the
-    # hit particle instead is biased where the lattice aliases with the bins: +3.4 % seen)
-    ac = a0 + ia.to(dt) * dx
-    bc = b0 + ib.to(dt) * dx
-    q = beam.efficiency * 2.0 * beam.power / (math.pi * beam.radius**2) * torch.exp(
-        -2.0 * (ac * ac + bc * bc) / beam.radius**2)
-    return torch.where(lit, q * dx * dx, torch.zeros_like(q))
+    plan = BeamPlan([beam], [None], x.shape[0], x.dtype, x.device, dx, cutoff)
+    return plan.trace(x, t, material, ids)
+
+
+class BeamPlan:
+    """Several beams traced together, each over its own rows, in one set of operations
+    (a loop over beams cost ~60 small operations per beam and step). Made once per pair
+    selection (the rows fixed until the next): ``subsets`` per beam, the rows it traces
+    (positions in the ``n`` rows traced; None: all of them); ``rows``: those rows' particles
+    (then :meth:`trace` reads the positions of every particle). The rows of all beams are
+    laid one after another (a row a beam can reach appears once per such beam), each beam
+    on its own grid of bins; the constants of each entry's beam are gathered once here."""
+
+    def __init__(self, beams, subsets, n: int, dtype, device, dx: float, cutoff: float = 3.0,
+                 rows: torch.Tensor | None = None):
+        parts = [torch.arange(n, device=device) if s is None else s for s in subsets]
+        self.n, self.dx, self.cutoff = n, dx, cutoff
+        self.idx = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.long, device=device)
+        # the particles traced: positions in ``x`` (with ``rows``, ``x`` holds every particle
+        # and only the traced rows are gathered; alone and over all rows, none is)
+        self.whole = rows is None and len(parts) == 1 and subsets[0] is None
+        self.src = self.idx if rows is None else rows.index_select(0, self.idx)
+        sizes = torch.tensor([p.numel() for p in parts], device=device)
+        self.nseg = len(parts)
+        self.seg = torch.repeat_interleave(torch.arange(self.nseg, device=device), sizes)
+        consts = [b.constants(dtype, device) for b in beams]
+        at = lambda vals: torch.stack(vals).index_select(0, self.seg)  # noqa: E731
+        # component k of (e, u, w) of each entry's beam: frame[k] (entries, 3)
+        self.frame = at([torch.stack(c[:3]) for c in consts]).permute(2, 0, 1).contiguous()
+        self.aim = at([c[3] for c in consts])
+        self.vel = at([c[4] for c in consts]) if any(any(b.velocity) for b in beams) else None
+        radius = torch.tensor([b.radius for b in beams], dtype=dtype, device=device)
+        q0 = torch.tensor([b.efficiency * 2.0 * b.power / (math.pi * b.radius**2) for b in beams],
+                          dtype=dtype, device=device)
+        self.reach2 = ((cutoff * radius) ** 2).index_select(0, self.seg)
+        self.inv_r2 = (2.0 / radius**2).index_select(0, self.seg)
+        self.q0 = q0.index_select(0, self.seg)
+        # bins of side dx around the candidate nearest each axis: (2M + 1)^2 per beam, plus
+        # one per beam for the rows that are no candidates (nothing is taken from it)
+        self.M = max((int(math.ceil(2.0 * cutoff * b.radius / dx)) + 1 for b in beams), default=1)
+        side = 2 * self.M + 1
+        self.side, self.nbin = side, side * side
+        self.base = self.seg * (self.nbin + 1)
+
+    def trace(self, x: torch.Tensor, t, material: torch.Tensor | None = None,
+              ids: torch.Tensor | None = None) -> torch.Tensor:
+        """Power (W) per plan entry; ``x``: the positions of the ``n`` rows traced (with the
+        plan's ``rows``: of every particle); ``material``, ``ids``: per row of ``x``.
+        Bins of side dx centred on the candidate nearest the axis: on a lattice seen along
+        an axis every column then sits at a bin centre (bins with edges on the columns split
+        them by round-off, leaving empty bins whose power nobody absorbed: -51 % was seen).
+        Fixed shapes, no read of the host."""
+        dev, dt, dx, M, side = x.device, x.dtype, self.dx, self.M, self.side
+        xr = x if self.whole else x.index_select(0, self.src)
+        rel = xr - (self.aim if self.vel is None else self.aim + t * self.vel)
+        f = self.frame  # (depth, a, b) in each beam's frame, by components (a batched
+        # matmul of 3 x 3 frames, or a product summed over the length-3 axis: 2-5x slower)
+        r0, r1, r2 = rel.unbind(-1)
+        depth, a, b = (r0.unsqueeze(-1) * f[0] + r1.unsqueeze(-1) * f[1] + r2.unsqueeze(-1) * f[2]).unbind(-1)
+        rho2 = a * a + b * b
+        cand = rho2 < self.reach2
+        if material is not None:
+            cand = cand & (material if self.whole else material.index_select(0, self.src))
+        inf = torch.full_like(rho2, math.inf)
+        big = torch.iinfo(torch.long).max
+        nseg, seg = self.nseg, self.seg
+        pos = torch.arange(rho2.numel(), device=dev)
+        # each beam's candidate nearest its axis (the first such row on a tie)
+        near = torch.full((nseg,), math.inf, dtype=dt, device=dev).scatter_reduce(0, seg, torch.where(cand, rho2, inf), "amin")
+        at_min = cand & (rho2 == near.index_select(0, seg))
+        k0 = torch.full((nseg,), big, dtype=torch.long, device=dev).scatter_reduce(
+            0, seg, torch.where(at_min, pos, torch.full_like(pos, big)), "amin").clamp_max(max(rho2.numel() - 1, 0))
+        k0 = k0.index_select(0, seg)
+        a0, b0 = a.index_select(0, k0), b.index_select(0, k0)
+        ia = torch.floor((a - a0) / dx + 0.5).long()
+        ib = torch.floor((b - b0) / dx + 0.5).long()
+        key = self.base + torch.where(cand, (ia + M).clamp(0, side - 1) * side + (ib + M).clamp(0, side - 1),
+                                      torch.full_like(ia, self.nbin))
+        nkey = nseg * (self.nbin + 1)
+        dmin = torch.full((nkey,), math.inf, dtype=dt, device=dev).scatter_reduce(0, key, torch.where(cand, depth, inf), "amin")
+        front = cand & (depth == dmin.index_select(0, key))
+        key_i = pos if ids is None else (ids if self.whole else ids.index_select(0, self.src))
+        first = torch.full((nkey,), big, dtype=torch.long, device=dev).scatter_reduce(
+            0, key, torch.where(front, key_i, torch.full_like(key_i, big)), "amin")
+        lit = front & (key_i == first.index_select(0, key))
+        # midpoint rule: the intensity at the bin centre times the bin area (sampling at the
+        # hit particle instead is biased where the lattice aliases with the bins: +3.4 % seen)
+        ac = a0 + ia.to(dt) * dx
+        bc = b0 + ib.to(dt) * dx
+        q = self.q0 * torch.exp(-(ac * ac + bc * bc) * self.inv_r2)
+        return torch.where(lit, q * (dx * dx), torch.zeros_like(q))
+
+    def power(self, x: torch.Tensor, t) -> torch.Tensor:
+        """Power (W) each of the ``n`` rows absorbs from all beams (summed over beams in order)."""
+        return torch.zeros(self.n, dtype=x.dtype, device=x.device).index_add_(0, self.idx, self.trace(x, t))
+
 
 def reachable(beams, x: torch.Tensor, reach: float, cutoff: float = 3.0) -> list:
     """For each beam whose aim does not move: the rows of ``x`` within its traced cylinder
@@ -133,28 +195,17 @@ def reachable(beams, x: torch.Tensor, reach: float, cutoff: float = 3.0) -> list
 
 
 def beams_power(beams, x: torch.Tensor, t: float, dx: float, subsets: list | None = None,
-                rows: torch.Tensor | None = None) -> torch.Tensor:
+                rows: torch.Tensor | None = None, plan: "BeamPlan | None" = None) -> torch.Tensor:
     """Power (W) each row absorbs from all ``beams`` (all rows material); each beam traced
     only on its rows of ``subsets`` (:func:`reachable`; None: on all). The rows are those of
     ``x``, or with ``rows`` the particles ``rows`` of ``x`` (positions of every particle):
     then only the rows a beam traces are gathered (the full scene's 733 600 conducting rows
-    made a 7 ms copy per step for the few thousand a beam can reach)."""
+    made a 7 ms copy per step for the few thousand a beam can reach). ``plan``: the
+    :class:`BeamPlan` of these beams, subsets and rows, where the caller keeps one."""
     n = x.shape[0] if rows is None else rows.numel()
-    at = (lambda idx: x.index_select(0, idx)) if rows is None else (lambda idx: x.index_select(0, rows.index_select(0, idx)))  # noqa: E731
-    ones = lambda m: torch.ones(m, dtype=torch.bool, device=x.device)  # noqa: E731
-    total = None
-    for k, b in enumerate(beams):
-        sub = None if subsets is None else subsets[k]
-        if sub is None:
-            xr = x if rows is None else x.index_select(0, rows)
-            p = beam_power(xr, ones(n), b, t, dx)
-            total = p if total is None else total + p
-            continue
-        if total is None:
-            total = torch.zeros(n, dtype=x.dtype, device=x.device)
-        if sub.numel():  # (nothing within its reach: none)
-            total = total.index_add(0, sub, beam_power(at(sub), ones(sub.numel()), b, t, dx))
-    return total if total is not None else torch.zeros(n, dtype=x.dtype, device=x.device)
+    if plan is None:
+        plan = BeamPlan(beams, [None] * len(beams) if subsets is None else subsets, n, x.dtype, x.device, dx, rows=rows)
+    return plan.power(x, t)
 
 
 def gaussian_fraction_in_strip(width: float, radius: float) -> float:

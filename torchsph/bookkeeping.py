@@ -220,14 +220,18 @@ def mid_step_read(sim, temperatures=None) -> dict:
     probe = getattr(sim.feeder, "probe", None)
     if probe is not None:
         q.update(probe(sim))
-    d = sim.nl.displaced(sim.state.x, sim.moving_rows())
-    if d is not None:
-        q["displaced"] = d
+    m = sim.nl.motion(sim.state.x, sim.moving_rows())
+    if m is not None:
+        q["motion"] = m
     if not q:
         return {}
-    vals = dict(zip(q, torch.stack([v.reshape(()) for v in q.values()]).tolist()))
-    if "displaced" in vals:
-        sim.nl.known = (sim.state.x, bool(vals["displaced"]))
+    flat = torch.cat([v.reshape(-1).to(torch.float64) for v in q.values()]).tolist()
+    vals, at = {}, 0
+    for k, v in q.items():
+        vals[k] = flat[at] if v.dim() == 0 else flat[at:at + v.numel()]
+        at += v.numel()
+    if "motion" in vals:
+        sim.nl.known = (sim.state.x, vals["motion"])
     if vals.get("T_bad"):
         rows, inv = temperatures
         sim.state.T = sim.state.T.index_copy(0, rows, inv.fixed())

@@ -35,6 +35,10 @@ class SerialComm:
     def any(self, flag: bool) -> bool:
         return flag
 
+    def reduce_max(self, vals: list[float]) -> list[float]:
+        """Each value's maximum over processes."""
+        return vals
+
     def sum(self, vals: list[float]) -> list[float]:
         return vals
 

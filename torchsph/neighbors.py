@@ -360,8 +360,8 @@ class NeighbourTable:
 
 
 class VerletList:
-    """Neighbour table of pairs within ``radius + skin``, rebuilt only when some particle has moved more
-    than ``skin / 2`` since the last build. Pairs between ``radius`` and
+    """Neighbour table of pairs within ``radius + skin``, rebuilt only when the separation of
+    some pair may have changed by more than ``skin`` since the last build (:meth:`displaced`). Pairs between ``radius`` and
     ``radius + skin`` are kept: compact kernels are exactly zero there.
 
     Partial rebuilds (``update(..., rigid=...)``): particles of one rigid body keep their mutual
@@ -415,29 +415,58 @@ class VerletList:
         self.table = NeighbourTable.dense(*build_table(x, r, self.domain)) if work is None else \
             subset_table(x, work, r, self.domain)
 
-    known = None  # (positions, whether they need a rebuild), read by the step with its other decisions
+    known = None  # (positions, their motion() read), read by the step with its other decisions
 
-    def displaced(self, x: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor | None:
-        """:meth:`needs_rebuild` as a 0-d device tensor (not read); None when the particle
-        set changed since the last build (a rebuild is due)."""
+    def motion(self, x: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor | None:
+        """What the rebuild test reads of the displacements d since the last build (of
+        ``rows``; None: all), as a (7,) device tensor whose maximum over processes is theirs
+        together: [2 max |d|, the largest d_k (>= 0), minus the smallest d_k (>= 0)], k = 1..3
+        (fewer in 2-D). None when the particle set changed since the build (a rebuild is due)."""
         if self.x_ref is None or self.x_ref.shape != x.shape:
             return None
         if rows is None:
             d = self.domain.minimum_image(x - self.x_ref)
         else:
             d = self.domain.minimum_image(x.index_select(0, rows) - self.x_ref.index_select(0, rows))
-        if self.skin <= 0:  # no skin: rebuild whenever anything moved
-            return (d != 0).any()
-        return (d * d).sum(-1).max() > (0.5 * self.skin) ** 2
+        if d.shape[0] == 0:
+            return torch.zeros(1 + 2 * x.shape[1], dtype=x.dtype, device=x.device)
+        top = 2.0 * (d * d).sum(-1).amax().sqrt()
+        return torch.cat([top.view(1), d.amax(0).clamp_min(0), -d.amin(0).clamp_max(0)])
 
-    def needs_rebuild(self, x: torch.Tensor, rows: torch.Tensor | None = None) -> bool:
-        """Whether some particle moved more than skin/2 since the last build; with ``rows``,
-        only those are checked (the caller knows the others move with one of them). The
-        answer for these very positions, if the step has read it already (``known``)."""
+    def due(self, m) -> torch.Tensor | bool:
+        """The rebuild test on a :meth:`motion` (a tensor, or the floats read of it).
+        The table stays right while no pair's separation has changed by more than the skin:
+        |d_i - d_j| is at most 2 max |d|, and at most the diagonal of the box that holds
+        every displacement and 0 (the particles not checked are at rest or move as one of
+        the checked). So one fast particle, or a blob of melt that moves as one past solid
+        at rest, is rebuilt for once it has moved a skin, not half a skin; any one particle
+        moves at most a skin between builds (:attr:`travel`)."""
+        d = (len(m) - 1) // 2
+        if self.skin <= 0:  # no skin: rebuild whenever anything moved
+            return m[0] > 0
+        if not isinstance(m, torch.Tensor):  # (read already: on the host)
+            return min(m[0], math.sqrt(sum((m[1 + k] + m[1 + d + k]) ** 2 for k in range(d)))) > self.skin
+        diag = (m[1:1 + d] + m[1 + d:]).square().sum().sqrt()
+        return torch.minimum(m[0], diag) > self.skin
+
+    @property
+    def travel(self) -> float:
+        """How far one particle can move between builds (:meth:`due`)."""
+        return self.skin
+
+    def needs_rebuild(self, x: torch.Tensor, rows: torch.Tensor | None = None, comm=None) -> bool:
+        """Whether some pair's separation may have changed by more than the skin since the
+        last build (:meth:`due`); ``comm``: over every process (the same answer on each);
+        with ``rows``, only those are checked (the caller knows the others move with one of
+        them). From the motion the step has read already for these very positions (``known``)."""
         if self.known is not None and self.known[0] is x:
-            return self.known[1]
-        d = self.displaced(x, rows)
-        return True if d is None else bool(d)
+            m = self.known[1]
+        else:
+            m = self.motion(x, rows)
+            m = None if m is None else m.tolist()
+        if comm is not None and comm.size > 1:  # (every process takes part, even one with a rebuild due)
+            m = comm.reduce_max([math.inf] * (1 + 2 * x.shape[1]) if m is None else m)
+        return True if m is None else bool(self.due(m))
 
     def update(self, x: torch.Tensor, force: bool = False, subset=None, rigid=None, rows=None) -> bool:
         """Rebuild if needed; returns True when the pairs changed. ``subset`` (a callable

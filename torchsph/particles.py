@@ -152,7 +152,7 @@ def remove_escaped(sim, t: float, H_half=None):
     the kept-rows mask or None). ``H_half()``: the specific enthalpy at the half step, what
     the particles hold in the energy balance at this point of the step (the flows to them
     are booked up to it)."""
-    due = sim.stale or sim.nl.needs_rebuild(sim.state.x, sim.moving_rows())
+    due = sim.nl.needs_rebuild(sim.state.x, sim.moving_rows(), sim.comm) or sim.stale  # (every process takes part)
     if sim.comm.size > 1:
         due = sim.comm.any(due)
     if not due:

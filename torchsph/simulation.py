@@ -142,7 +142,7 @@ class Simulation:
         subset = (lambda: bookkeeping.work_set(self, stale)) if self.active_set is not None else None
         force = force or stale
         if not force and self.comm.size > 1:  # all processes rebuild at the same steps
-            force = self.comm.any(self.nl.needs_rebuild(self.state.x, self.moving_rows()))
+            force = self.nl.needs_rebuild(self.state.x, self.moving_rows(), self.comm)
             if not force:
                 return
         rigid = (lambda: bookkeeping.rigid_groups(self)) if self.partial_rebuild else None
@@ -175,7 +175,7 @@ class Simulation:
             self.thermal.owned = self.comm.owned(self)
             self.thermal.select_pairs(self.state, self.nl.table, active=self.active_mask,
                                       work=getattr(self.active_set, "work", None), cross=bookkeeping.cross_rows(self),
-                                      x_ref=self.nl.x_ref, new_table=new_table, reach=0.5 * self.nl.skin)
+                                      x_ref=self.nl.x_ref, new_table=new_table, reach=self.nl.travel)
         for term in self.terms:
             term.select(self)
         if self.feeder is not None and hasattr(self.feeder, "select"):

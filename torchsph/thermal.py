@@ -16,7 +16,7 @@ import torch
 
 from .fluid import embed, gather_nb, pair_geometry
 from .free_surface import ColourGradient, colour_gradient_pairs  # noqa: F401 (re-exported)
-from .beam import beam_power, beams_power, in_beam, reachable
+from .beam import BeamPlan, beam_power, beams_power, in_beam, reachable
 from .heat_operator import ConductionOperator, SlowSplit, by_rows, row_entries
 from .kernels import Kernel
 from .neighbors import Domain
@@ -487,6 +487,7 @@ class Conduction:
             split_operator(self, state)
         if self.losses.active:  # the surface rows, made here outside the traced part of the step
             surface_rows(self, state)
+        plan_beams(self, state, self.rows)  # the beams' tracing, outside the traced part of the step
         if self.int_rows_for is not self.rows or (self.op.split is not None and self.int_rows is None):
             integrated_rows(self)
 
@@ -574,10 +575,9 @@ class Conduction:
     def beam_power_rows(self, state: ParticleState, t: float, rows: torch.Tensor) -> torch.Tensor:
         """:meth:`beam_power` on ``rows`` only (each beam traced on the rows it can reach)."""
         comm = getattr(self, "comm", None)
-        subs = self.beam_rows if rows is getattr(self, "rows", None) else None
         if comm is not None and comm.size > 1:
-            return beam_power_decomposed(self, state, t, rows, comm, subs)
-        return beams_power(self.beams, state.x, t, self.dx, subs, rows)
+            return beam_power_decomposed(self, state, t, rows, comm, self.beam_rows if rows is getattr(self, "rows", None) else None)
+        return beams_power(self.beams, state.x, t, self.dx, plan=plan_beams(self, state, rows))
 
     def lit_mask(self, state: ParticleState, t: float) -> torch.Tensor | None:
         """Particles any beam lights at time t (all non-wall particles considered)."""
@@ -895,6 +895,21 @@ def evaporation_limit(th, state: ParticleState):
     lam = area * dq / (state.m.index_select(0, rows) * th.prm.specific_heat)
     lmax = lam.max().double()
     return torch.where(lmax > 0, 0.5 / lmax, torch.full_like(lmax, math.inf))
+
+
+def plan_beams(th, state: ParticleState, rows: torch.Tensor) -> BeamPlan | None:
+    """The beams' tracing plan of ``rows`` for ``th`` (:class:`Conduction`), made once per row
+    set (a selection's; :meth:`Conduction.prepare` makes it outside the traced part of the step),
+    kept as ``th.beam_plan`` = (subsets, rows, plan). None without beams, or decomposed (traced apart)."""
+    if not th.beams or getattr(getattr(th, "comm", None), "size", 1) > 1:
+        return None
+    subs = th.beam_rows if rows is getattr(th, "rows", None) else None
+    memo = getattr(th, "beam_plan", None)
+    if memo is None or memo[0] is not subs or memo[1] is not rows:
+        plan = BeamPlan(th.beams, [None] * len(th.beams) if subs is None else subs, rows.numel(),
+                        state.x.dtype, state.x.device, th.dx, rows=rows)
+        th.beam_plan = memo = (subs, rows, plan)
+    return memo[2]
 
 
 def beam_power_decomposed(th, state: ParticleState, t: float, rows: torch.Tensor, comm, subs: list | None = None):
