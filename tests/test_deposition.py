@@ -533,3 +533,30 @@ def test_with_wire_stall_the_feed_also_waits_while_it_squeezes_melt():
             assert feeder.check_contact(sim) is waits, (stall, comp)
             if waits:  # a wait would begin here, booked to the squeezed melt
                 assert feeder.stall_why == "squeezed"
+
+
+def test_zeta_made_with_the_colour_gradient_equals_zeta_made_alone(monkeypatch):
+    """At a neighbour rebuild the rows whose zeta changes are those whose surface area the
+    colour stage makes afresh: it makes zeta from the same pairs (one pass, not two). Those
+    values equal zeta made alone (laplacian_norm on those rows) bit for bit, so a restart, which
+    makes every row's zeta alone, continues the run exactly."""
+    from torchsph import thermal
+
+    cfg = small("scene.source_power_W=300.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=3.0e-3")
+    _, sim = make_simulation(cfg)
+    th = sim.thermal
+    fused = []
+    original = thermal.zeta_of
+
+    def checked(th_, state, rows):
+        z = original(th_, state, rows)
+        if th_.zeta_want is not None and th_.colour.norm(state, th_.zeta_want) is not None:
+            alone = thermal.laplacian_norm(state.x, state.m, state.rho, rows, th_.table.gather(rows, within=True)[0],
+                                           th_.kernel, th_.h, th_.domain)
+            assert torch.equal(z, alone)
+            fused.append(rows.numel())
+        return z
+
+    monkeypatch.setattr(thermal, "zeta_of", checked)
+    run_steps(sim, steps=120)
+    assert len(fused) >= 1 and 0 < min(fused) and max(fused) < th.rows.numel(), fused  # (a rebuild's rows, not all)

@@ -258,7 +258,7 @@ def test_one_colour_gradient_per_step_for_the_surface_forces_and_the_losses(monk
     are those of separate evaluations: the runs before and after this stage agree bit for bit."""
     from pathlib import Path
 
-    from torchsph.free_surface import colour_gradient_pairs
+    from torchsph.free_surface import colour_and_norm_pairs, colour_gradient_pairs
 
     root = Path(__file__).resolve().parents[1]
     _, cfg = load_case(root / "cases" / "cube_evaporation_preview", ["scene.size_m=[2.5e-3, 2.5e-3, 2.5e-3]",
@@ -272,8 +272,16 @@ def test_one_colour_gradient_per_step_for_the_surface_forces_and_the_losses(monk
         calls.append(a[3].numel())
         return colour_gradient_pairs(*a)
 
+    fused = []
+
+    def counted_norm(*a):  # the stage's pair sum when it also makes zeta (a rebuild's rows)
+        calls.append(a[3].numel())
+        fused.append(len(calls))
+        return colour_and_norm_pairs(*a)
+
     stage.fn = counted  # the stage's pair sum, and the one the losses would call on their own
     monkeypatch.setattr("torchsph.thermal.colour_gradient_pairs", counted)
+    monkeypatch.setattr("torchsph.free_surface.colour_and_norm_pairs", counted_norm)
     per_step, rebuilt, rows = [], [], []
     for k in range(10):
         if k in (3, 7):

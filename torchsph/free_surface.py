@@ -20,6 +20,15 @@ def colour_pair_weights(m, rho, rows, nb, r, kernel: Kernel, h: float):
     return (Vi * Vi + Vj * Vj) * rho_i / (rho_i + rho_j) * (kernel.dwdr(r, h) / r) / Vi, Vj
 
 
+def colour_and_norm_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
+    """:func:`colour_gradient_pairs` and, from the same pair geometry, the Laplacian
+    normalisation zeta_i = -(1/d) sum_j V_j r_ij dW/dr (:func:`torchsph.thermal.laplacian_norm`,
+    the same operations in the same order: the same bits)."""
+    dx, r = pair_geometry(x, rows, nb, domain, h)
+    w, Vj = colour_pair_weights(m, rho, rows, nb, r, kernel, h)
+    return (w.unsqueeze(-1) * dx).sum(1), -(Vj * r * kernel.dwdr(r, h)).sum(1) / x.shape[1]
+
+
 def colour_gradient_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
     """grad c_i = (1/V_i) sum_j (V_i^2 + V_j^2) rho_i / (rho_i + rho_j) dW/dr e_ij (3.9) over
     all material neighbours (c = 1 in all material): nonzero only where the kernel is
@@ -73,6 +82,20 @@ class ColourGradient:
         self.wanted: dict[str, torch.Tensor] = {}
         self.table = None
         self.memo = None  # (x, rho, {name: gradient of its rows})
+        self.norm_rows = None  # rows whose Laplacian normalisation the next evaluation also makes (want_norm)
+        self.norm_memo = None  # (x, rho, norm_rows, their normalisation)
+
+    def want_norm(self, rows: torch.Tensor | None):
+        """At a selection: the next evaluation also makes the Laplacian normalisation of
+        ``rows`` (among the rows asked for), from the pairs it reads anyway (None: not)."""
+        self.norm_rows, self.norm_memo = rows, None
+
+    def norm(self, state, rows: torch.Tensor) -> torch.Tensor | None:
+        """The normalisation of ``rows`` made by the evaluation at ``state``, if it made it."""
+        m = self.norm_memo
+        if m is not None and m[0] is state.x and m[1] is state.rho and m[2] is rows:
+            return m[3]
+        return None
 
     def want(self, name: str, rows: torch.Tensor | None, table=None):
         """Term ``name`` reads the rows ``rows`` of the neighbour table ``table`` (None: nothing)."""
@@ -102,5 +125,10 @@ class ColourGradient:
         union = torch.nonzero(mark).squeeze(1)  # (at a selection's first evaluation only)
         slot = torch.cumsum(mark, 0) - 1
         nb = self.table.gather(union, within=True)[0]
-        g = self.fn(state.x, state.m, state.rho, union, nb, self.kernel, self.h, self.domain)
+        nr = self.norm_rows
+        if nr is not None and bool(mark.index_select(0, nr).all()):  # zeta from the same pairs (a selection's)
+            g, zn = colour_and_norm_pairs(state.x, state.m, state.rho, union, nb, self.kernel, self.h, self.domain)
+            self.norm_memo = (state.x, state.rho, nr, zn.index_select(0, slot.index_select(0, nr)))
+        else:
+            g = self.fn(state.x, state.m, state.rho, union, nb, self.kernel, self.h, self.domain)
         return {name: g.index_select(0, slot.index_select(0, rows)) for name, rows in sets}

@@ -17,7 +17,7 @@ import torch
 from .fluid import embed, gather_nb, pair_geometry
 from .free_surface import ColourGradient, colour_gradient_pairs  # noqa: F401 (re-exported)
 from .beam import BeamPlan, beam_power, beams_power, in_beam, reachable
-from .heat_operator import ConductionOperator, SlowSplit, by_rows, row_entries
+from .heat_operator import ENTRY_BLOCK, ConductionOperator, SlowSplit, by_rows, row_entries
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import ParticleState, Phase
@@ -409,6 +409,7 @@ class Conduction:
             sub, _ = self._rows_to_compute("area")
             self.colour.want("area", self.rows if sub is None else self.rows.index_select(0, sub), table)
             self.area_want = (self.area_prev, self.area_ok)
+            self.colour.want_norm(zeta_rows(self, state, table))
 
     def wall_temperature(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
         """T with wall rows replaced by the mirrored Dirichlet value 2 T_set - <T>."""
@@ -477,9 +478,8 @@ class Conduction:
         return embed(self.rows, self.heat_rate_rows(state, T), state.n)
 
     def prepare(self, state: ParticleState):
-        """Once per pair selection, at its first evaluation: the Laplacian normalisation and
-        the operator's values (the step calls it before its second half, which then has no
-        branch on them)."""
+        """Once per pair selection, at its first evaluation: zeta and the operator's values (the
+        step calls it before its second half, which then has no branch on them)."""
         if self.zeta_cache is None:
             self.zeta_cache = self.zeta(state)
         if not self.op.built:  # once per selection, when zeta is known
@@ -504,8 +504,8 @@ class Conduction:
         zeta ~ 0.5) the plain SPH operator, which acts as an insulated boundary, is kept.
         Walls, and particles outside the rows (an active set's frozen halo), count as 1."""
         sub, prev = self._rows_to_compute("zeta")
-        rows, nb = rows_and_table(self, sub)
-        z = by_rows(lambda r, t: self._zeta_fn(state.x, state.m, state.rho, r, t, self.kernel, self.h, self.domain), rows, nb)
+        rows = self.rows if sub is None else self.rows.index_select(0, sub)
+        z = zeta_of(self, state, rows)
         z = torch.where((z > 0.95) & (z < 1.05), z, torch.ones_like(z))
         in_rows = self._computed("zeta", state.n)
         one = torch.ones(state.n, dtype=z.dtype, device=z.device)  # off the rows (at 0 a halo pair had twice its g)
@@ -895,6 +895,28 @@ def evaporation_limit(th, state: ParticleState):
     lam = area * dq / (state.m.index_select(0, rows) * th.prm.specific_heat)
     lmax = lam.max().double()
     return torch.where(lmax > 0, 0.5 / lmax, torch.full_like(lmax, math.inf))
+
+
+def zeta_rows(th, state: ParticleState, table, limit: int = 4 * ENTRY_BLOCK):
+    """At a selection: the rows whose zeta the next evaluation makes, for the colour stage to
+    make from the pairs it reads for the area anyway (kept as ``th.zeta_want``), or None: a
+    whole zeta (a restart, new particles: made in blocks) or a compiled zeta is made apart."""
+    sub, _ = th._rows_to_compute("zeta")
+    th.zeta_want = None
+    if sub is not None and th._zeta_fn is laplacian_norm and sub.numel() * table.k <= limit:
+        th.zeta_want = th.rows.index_select(0, sub)
+    return th.zeta_want
+
+
+def zeta_of(th, state: ParticleState, rows: torch.Tensor) -> torch.Tensor:
+    """zeta (unclipped) of ``rows`` of ``th`` (:class:`Conduction`): the colour stage's where it
+    made them at this state (:func:`zeta_rows`), else in blocks of table rows."""
+    want = getattr(th, "zeta_want", None)
+    z = th.colour.norm(state, want) if want is not None else None
+    if z is None or z.shape[0] != rows.numel():
+        z = by_rows(lambda r, t: th._zeta_fn(state.x, state.m, state.rho, r, t, th.kernel, th.h, th.domain),
+                    rows, th.table.gather(rows, within=True)[0])
+    return z
 
 
 def plan_beams(th, state: ParticleState, rows: torch.Tensor) -> BeamPlan | None:

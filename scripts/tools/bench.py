@@ -97,6 +97,8 @@ def main(argv=None):
     ap.add_argument("--ref", default="b14e316", help="reference commit for --deposition")
     ap.add_argument("--steps", type=int, default=100, help="--deposition: timed steps on the preview state")
     ap.add_argument("--full-steps", type=int, default=50, help="--deposition: timed first steps of the full scene")
+    ap.add_argument("--repeat", type=int, default=3,
+                    help="--deposition: rounds on the preview state, the two codes taking turns (the median round is shown)")
     ap.add_argument("--states", nargs="*", default=["preview", "full", "developed"], choices=("preview", "full", "developed"))
     ap.add_argument("--t-developed", type=float, default=0.003,
                     help="--deposition: the full scene's developed state, run to this time by the reference (s)")
@@ -104,7 +106,7 @@ def main(argv=None):
     if a.deposition:
         from bench_deposition import run
 
-        run(a.ref, a.steps, a.full_steps, a.states, t_developed=a.t_developed)
+        run(a.ref, a.steps, a.full_steps, a.states, t_developed=a.t_developed, repeat=a.repeat)
         return
     nxs = a.nx or ([50] if a.quick else [50, 100, 200])
     devices = a.device or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])

@@ -18,6 +18,10 @@ temporary git worktree and removed afterwards. States:
   reference code, its checkpoint cached as the preview's (the reference takes ~15 min for it,
   once); both codes restart from it as from the preview state, then ``--full-steps`` timed steps.
 
+The preview state is measured ``--repeat`` times (default 3), the two codes taking turns, and
+each code's median round is shown (the rounds' speed-ups are printed above the table): a load
+elsewhere on the machine moves single rounds by up to 30 %.
+
 Columns: ms per step over the timed steps (rebuilds included), the median plain step, the
 extra cost of a step that rebuilds the neighbour list (all of them, then split into those that kept
 the active set and those that refreshed it, as the heated zone reached its edge), particle-steps/s, the process's peak
@@ -145,7 +149,7 @@ def row(state, code, r, ref=None):
 
 
 def run(ref: str, steps: int, full_steps: int, states=("preview", "full", "developed"), t_state: float = 0.03,
-        t_developed: float = 0.003):
+        t_developed: float = 0.003, repeat: int = 3):
     head = tree_key(ROOT)
     print(f"# deposition step: this tree ({head}) against {ref}, 1 thread; "
           f"preview state at t = {t_state:g} s, {steps} steps; full scene's first {full_steps} steps; "
@@ -157,16 +161,23 @@ def run(ref: str, steps: int, full_steps: int, states=("preview", "full", "devel
         try:
             results = {}
             for state in states:
-                for name, tree in (("ref", wt), ("this", ROOT)):
-                    if state == "preview":  # both codes on the reference's state; this code's own run
-                        own = preview_checkpoint(tree, t_state)  # to t_state gives the physics table
-                        results[state, name] = measure(tree, "preview", steps, preview_checkpoint(wt, t_state)
-                                                       if name == "this" else own)
-                    elif state == "developed":  # both codes on the reference's state
-                        results[state, name] = measure(tree, "preview", full_steps, developed_checkpoint(wt, t_developed))
-                    else:
-                        results[state, name] = measure(tree, "full", full_steps)
-                    print(f"# {state} {name}: {json.dumps(results[state, name])}", flush=True)
+                rounds = {"ref": [], "this": []}
+                for _ in range(max(repeat, 1) if state == "preview" else 1):  # the two codes take turns
+                    for name, tree in (("ref", wt), ("this", ROOT)):
+                        if state == "preview":  # both codes on the reference's state; this code's own run
+                            own = preview_checkpoint(tree, t_state)  # to t_state gives the physics table
+                            r = measure(tree, "preview", steps, preview_checkpoint(wt, t_state) if name == "this" else own)
+                        elif state == "developed":  # both codes on the reference's state
+                            r = measure(tree, "preview", full_steps, developed_checkpoint(wt, t_developed))
+                        else:
+                            r = measure(tree, "full", full_steps)
+                        rounds[name].append(r)
+                        print(f"# {state} {name}: {json.dumps(r)}", flush=True)
+                for name, rs in rounds.items():  # the median round (a load on the machine slows some)
+                    results[state, name] = sorted(rs, key=lambda r: r["ms_per_step"])[(len(rs) - 1) // 2]
+                if len(rounds["ref"]) > 1:
+                    ratios = [a["ms_per_step"] / b["ms_per_step"] for a, b in zip(rounds["ref"], rounds["this"])]
+                    print(f"# {state}: speed-up by round " + ", ".join(f"{q:.2f}x" for q in ratios), flush=True)
         finally:
             git("worktree", "remove", "--force", str(wt))
     if "preview" in states:
