@@ -115,20 +115,23 @@ class ColourGradient:
 
     def _evaluate(self, state) -> dict[str, torch.Tensor]:
         sets = list(self.wanted.items())
-        if len(sets) == 1:
+        # zeta's rows join the union (at a selection they are the area's); not in a traced step,
+        # which then makes zeta apart and has no variant for it
+        nr = None if torch.compiler.is_compiling() else self.norm_rows
+        if len(sets) == 1 and nr is None:
             name, rows = sets[0]
             nb = self.table.gather(rows, within=True)[0]
             return {name: self.fn(state.x, state.m, state.rho, rows, nb, self.kernel, self.h, self.domain)}
         mark = torch.zeros(state.n, dtype=torch.bool, device=state.x.device)
-        for _, rows in sets:
+        for rows in [r for _, r in sets] + ([nr] if nr is not None else []):
             mark.index_fill_(0, rows, True)
         union = torch.nonzero(mark).squeeze(1)  # (at a selection's first evaluation only)
         slot = torch.cumsum(mark, 0) - 1
         nb = self.table.gather(union, within=True)[0]
-        nr = self.norm_rows
-        if nr is not None and bool(mark.index_select(0, nr).all()):  # zeta from the same pairs (a selection's)
+        if nr is not None:  # zeta from the same pairs (a selection's)
             g, zn = colour_and_norm_pairs(state.x, state.m, state.rho, union, nb, self.kernel, self.h, self.domain)
             self.norm_memo = (state.x, state.rho, nr, zn.index_select(0, slot.index_select(0, nr)))
+            self.norm_rows = None  # (once: the next evaluations have the surface rows alone)
         else:
             g = self.fn(state.x, state.m, state.rho, union, nb, self.kernel, self.h, self.domain)
         return {name: g.index_select(0, slot.index_select(0, rows)) for name, rows in sets}
