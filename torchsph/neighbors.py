@@ -361,7 +361,7 @@ class NeighbourTable:
 
 class VerletList:
     """Neighbour table of pairs within ``radius + skin``, rebuilt only when the separation of
-    some pair may have changed by more than ``skin`` since the last build (:meth:`displaced`). Pairs between ``radius`` and
+    some pair may have changed by more than ``skin`` since the last build (:meth:`due`). Pairs between ``radius`` and
     ``radius + skin`` are kept: compact kernels are exactly zero there.
 
     Partial rebuilds (``update(..., rigid=...)``): particles of one rigid body keep their mutual
