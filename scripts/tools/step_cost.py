@@ -94,6 +94,9 @@ def main():
         else:
             from parallel.run import save_global
             save_global(*args[:1], comm, *args[1:])
+        if root:  # the case beside it, as a run's (what --restart reads)
+            from torchsph import io as sio
+            sio.write_json(a.checkpoint.parent / "config.json", {"case": str(a.case), **cfg})
     if root:
         total = sum(r["wall_s"] for r in rows)
         last = rows[-1]
