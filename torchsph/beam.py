@@ -99,7 +99,7 @@ class BeamPlan:
     def __init__(self, beams, subsets, n: int, dtype, device, dx: float, cutoff: float = 3.0,
                  rows: torch.Tensor | None = None):
         parts = [torch.arange(n, device=device) if s is None else s for s in subsets]
-        self.n, self.dx, self.cutoff = n, dx, cutoff
+        self.n, self.dx = n, dx
         self.idx = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.long, device=device)
         # the particles traced: positions in ``x`` (with ``rows``, ``x`` holds every particle
         # and only the traced rows are gathered; alone and over all rows, none is)

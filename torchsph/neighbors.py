@@ -433,8 +433,8 @@ class VerletList:
         top = 2.0 * (d * d).sum(-1).amax().sqrt()
         return torch.cat([top.view(1), d.amax(0).clamp_min(0), -d.amin(0).clamp_max(0)])
 
-    def due(self, m) -> torch.Tensor | bool:
-        """The rebuild test on a :meth:`motion` (a tensor, or the floats read of it).
+    def due(self, m: list[float]) -> bool:
+        """The rebuild test on the floats read of a :meth:`motion`.
         The table stays right while no pair's separation has changed by more than the skin:
         |d_i - d_j| is at most 2 max |d|, and at most the diagonal of the box that holds
         every displacement and 0 (the particles not checked are at rest or move as one of
@@ -444,10 +444,7 @@ class VerletList:
         d = (len(m) - 1) // 2
         if self.skin <= 0:  # no skin: rebuild whenever anything moved
             return m[0] > 0
-        if not isinstance(m, torch.Tensor):  # (read already: on the host)
-            return min(m[0], math.sqrt(sum((m[1 + k] + m[1 + d + k]) ** 2 for k in range(d)))) > self.skin
-        diag = (m[1:1 + d] + m[1 + d:]).square().sum().sqrt()
-        return torch.minimum(m[0], diag) > self.skin
+        return min(m[0], math.sqrt(sum((m[1 + k] + m[1 + d + k]) ** 2 for k in range(d)))) > self.skin
 
     @property
     def travel(self) -> float:
@@ -466,7 +463,7 @@ class VerletList:
             m = None if m is None else m.tolist()
         if comm is not None and comm.size > 1:  # (every process takes part, even one with a rebuild due)
             m = comm.reduce_max([math.inf] * (1 + 2 * x.shape[1]) if m is None else m)
-        return True if m is None else bool(self.due(m))
+        return True if m is None else self.due(m)
 
     def update(self, x: torch.Tensor, force: bool = False, subset=None, rigid=None, rows=None) -> bool:
         """Rebuild if needed; returns True when the pairs changed. ``subset`` (a callable

@@ -16,7 +16,7 @@ import torch
 
 from .fluid import embed, gather_nb, pair_geometry
 from .free_surface import ColourGradient, colour_gradient_pairs  # noqa: F401 (re-exported)
-from .beam import BeamPlan, beam_power, beams_power, in_beam, reachable
+from .beam import BeamPlan, beams_power, in_beam, reachable
 from .heat_operator import ENTRY_BLOCK, ConductionOperator, SlowSplit, by_rows, row_entries
 from .kernels import Kernel
 from .neighbors import Domain
@@ -409,7 +409,7 @@ class Conduction:
             sub, _ = self._rows_to_compute("area")
             self.colour.want("area", self.rows if sub is None else self.rows.index_select(0, sub), table)
             self.area_want = (self.area_prev, self.area_ok)
-            self.colour.want_norm(zeta_rows(self, state, table))
+            self.colour.want_norm(zeta_rows(self, table))
 
     def wall_temperature(self, state: ParticleState, T: torch.Tensor) -> torch.Tensor:
         """T with wall rows replaced by the mirrored Dirichlet value 2 T_set - <T>."""
@@ -897,7 +897,7 @@ def evaporation_limit(th, state: ParticleState):
     return torch.where(lmax > 0, 0.5 / lmax, torch.full_like(lmax, math.inf))
 
 
-def zeta_rows(th, state: ParticleState, table, limit: int = 4 * ENTRY_BLOCK):
+def zeta_rows(th, table, limit: int = 4 * ENTRY_BLOCK):
     """At a selection: the rows whose zeta the next evaluation makes, for the colour stage to
     make from the pairs it reads for the area anyway (kept as ``th.zeta_want``), or None: a
     whole zeta (a restart, new particles: made in blocks) or a compiled zeta is made apart."""
@@ -957,8 +957,7 @@ def beam_power_decomposed(th, state: ParticleState, t: float, rows: torch.Tensor
     g = comm.gather_rows({"x": x[sel], "id": ids[sel]})
     order = torch.argsort(g["id"])
     gx, gid = g["x"].index_select(0, order), g["id"].index_select(0, order)
-    material = torch.ones(gid.numel(), dtype=torch.bool, device=x.device)
-    P_g = sum(beam_power(gx, material, b, t, th.dx) for b in th.beams)
+    P_g = beams_power(th.beams, gx, t, th.dx)  # (all of them material)
     P = torch.zeros(rows.numel(), dtype=x.dtype, device=x.device)
     if gid.numel():
         pos = torch.searchsorted(gid, ids).clamp_max(gid.numel() - 1)
