@@ -236,3 +236,24 @@ def mid_step_read(sim, temperatures=None) -> dict:
         rows, inv = temperatures
         sim.state.T = sim.state.T.index_copy(0, rows, inv.fixed())
     return vals
+
+
+def select_pairs(sim, new_table: bool = False):
+    """The pair subsets of every model on the neighbour table (after a rebuild, a phase change, a
+    feed): each model's rows, and the terms', feeder's and plan's selections."""
+    sim.n_selections += 1
+    if sim.fluid is not None:
+        sim.fluid.select_pairs(sim.state, sim.nl.table, level=sim.comm.levels(sim),
+                               depth=getattr(sim.comm, "depth", 2))
+    if sim.surface is not None:
+        sim.surface.select_pairs(sim.state, sim.nl.table)
+    if sim.thermal is not None:
+        sim.thermal.owned = sim.comm.owned(sim)
+        sim.thermal.select_pairs(sim.state, sim.nl.table, active=sim.active_mask,
+                                 work=getattr(sim.active_set, "work", None), cross=cross_rows(sim),
+                                 x_ref=sim.nl.x_ref, new_table=new_table, reach=sim.nl.travel)
+    for term in sim.terms:
+        term.select(sim)
+    if sim.feeder is not None and hasattr(sim.feeder, "select"):
+        sim.feeder.select(sim)
+    sim.plan.select(sim)

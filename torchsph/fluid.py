@@ -213,6 +213,7 @@ class WeaklyCompressibleFluid:
         <= depth - 1; ghosts take their owners' accelerations afterwards."""
         fluid = state.phase == Phase.FLUID
         self.fluid_mask = fluid
+        self._geom = None  # the pair geometry of the last momentum evaluation is the old pairs'
         self.fluid_rows = torch.nonzero(fluid).squeeze(1)  # every fluid particle (ghosts too): the step moves these
         self.fluid_rows_for = state.phase  # (the phase array they were found in)
         if level is None:
@@ -333,6 +334,9 @@ class WeaklyCompressibleFluid:
         particles down the gradient of the particle concentration, which keeps the
         distribution isotropic where the flow stretches it; fluid only, at most 0.1 dx0: the
         shift of the rows :attr:`rows_f` (the others do not shift)."""
+        if self._geom is None:
+            raise RuntimeError("continuity: the pairs were selected again since the last momentum evaluation; "
+                               "evaluate the accelerations on them first (Simulation.rebuild does both)")
         dx, dWr, rho_geom = self._geom
         rho = rho_geom if rho is None else rho  # the current densities (a decomposition refreshed its ghosts')
         prm = self.prm

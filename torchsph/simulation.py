@@ -153,6 +153,13 @@ class Simulation:
             self.select_pairs(new_table=True)
             self.moving_rows()  # for the new work set, at the rebuild
 
+    def rebuild(self):
+        """Build the neighbour table now, between steps (a tool, a state set from outside), and evaluate
+        the accelerations on it (the next step's continuity reads that evaluation's pair geometry)."""
+        self.refresh_pairs(force=True)
+        if self.fluid is not None:
+            self.dvdt = self.accelerations(self.state.v)
+
     moving = moving_for = moving_key = None  # the rows of moving_rows() and what they were made for
 
     def moving_rows(self) -> torch.Tensor | None:
@@ -165,22 +172,8 @@ class Simulation:
     n_selections = 0  # pair selections so far (a decomposition refreshes every ghost after one)
 
     def select_pairs(self, new_table: bool = False):
-        self.n_selections += 1
-        if self.fluid is not None:
-            self.fluid.select_pairs(self.state, self.nl.table, level=self.comm.levels(self),
-                                    depth=getattr(self.comm, "depth", 2))
-        if self.surface is not None:
-            self.surface.select_pairs(self.state, self.nl.table)
-        if self.thermal is not None:
-            self.thermal.owned = self.comm.owned(self)
-            self.thermal.select_pairs(self.state, self.nl.table, active=self.active_mask,
-                                      work=getattr(self.active_set, "work", None), cross=bookkeeping.cross_rows(self),
-                                      x_ref=self.nl.x_ref, new_table=new_table, reach=self.nl.travel)
-        for term in self.terms:
-            term.select(self)
-        if self.feeder is not None and hasattr(self.feeder, "select"):
-            self.feeder.select(self)
-        self.plan.select(self)
+        """Every model's pair subsets of the current table (:func:`torchsph.bookkeeping.select_pairs`)."""
+        bookkeeping.select_pairs(self, new_table)
 
     # --- time-step control (torchsph.limits) --------------------------------
     T_seen = None  # with an active set: the temperatures the last step left (others were set by hand)

@@ -107,7 +107,10 @@ def main():
     if a.what == "preview":
         _, sim = simulation_from_run(a.checkpoint)
         # a neighbour build now, as after a restart from another version's checkpoint
-        (getattr(sim, "refresh_pairs", None) or getattr(sim, "_refresh_pairs"))(force=True)
+        if hasattr(sim, "rebuild"):  # (this code: the pairs, and the rates evaluated on them)
+            sim.rebuild()
+        else:
+            (getattr(sim, "refresh_pairs", None) or getattr(sim, "_refresh_pairs"))(force=True)
     else:
         from torchsph.config import SURFACE  # the reference's physics: no wetting model (as b14e316)
         case = a.tree / "cases" / "perpendicular_350W"

@@ -39,7 +39,7 @@ def main():
             ap.error(f"--set {o!r}: expected numerics.KEY=VALUE")
         numerics[key.split(".", 1)[1]] = float(value)
     _, sim = simulation_from_run(a.checkpoint, numerics=numerics or None)
-    sim.refresh_pairs(force=True)
+    sim.rebuild()
     run_steps(sim, steps=5)
     prof = cProfile.Profile()
     walls = []
