@@ -294,6 +294,10 @@ class SerialRun:
                 "escaped": sim.escape.state_dict() if sim.escape is not None else None}
 
 
+STEP_MODE = torch.inference_mode  # a run steps without autograd: each operation ~1 us cheaper (preview: 10-15 %)
+
+
+@STEP_MODE()
 def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, device=None,
              dtype=None, progress=True, checkpoint_every: int | None = None,
              restart: Path | None = None, procs=None, estimate: bool = False,
@@ -309,7 +313,9 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     steps in, prints the projection and stops there (nothing written). Checkpoints
     (``out_dir/checkpoint.pt``, atomic) are written every ``checkpoint_every`` steps, at the
     end, and when the run is interrupted (SIGINT/Ctrl-C: the step in progress is finished,
-    the checkpoint and ``summary.json`` written, then KeyboardInterrupt raised).
+    the checkpoint and ``summary.json`` written, then KeyboardInterrupt raised). The run is made
+    in ``torch.inference_mode`` (its tensors are inference tensors: a caller that changes them in
+    place afterwards does so in that mode too).
     ``restart`` continues from a checkpoint of the same case; ``steps`` then counts the
     steps still to run, ``t_end`` stays the end time; the bar and the wall time go on
     from the checkpoint's."""

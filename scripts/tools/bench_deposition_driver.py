@@ -13,6 +13,7 @@ the same way). One thread.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
 import json
 import os
@@ -102,33 +103,36 @@ def main():
     from torchsph.config import load_case
     from torchsph.runner import make_simulation, run_steps, simulation_from_run
 
-    Counter = load_counter()
-    t0 = time.perf_counter()
-    if a.what == "preview":
-        _, sim = simulation_from_run(a.checkpoint)
-        # a neighbour build now, as after a restart from another version's checkpoint
-        if hasattr(sim, "rebuild"):  # (this code: the pairs, and the rates evaluated on them)
-            sim.rebuild()
+    from torchsph import runner
+    # each tree steps in the mode its CLI runs in (this code: inference mode, runner.STEP_MODE)
+    with getattr(runner, "STEP_MODE", contextlib.nullcontext)():
+        Counter = load_counter()
+        t0 = time.perf_counter()
+        if a.what == "preview":
+            _, sim = simulation_from_run(a.checkpoint)
+            # a neighbour build now, as after a restart from another version's checkpoint
+            if hasattr(sim, "rebuild"):  # (this code: the pairs, and the rates evaluated on them)
+                sim.rebuild()
+            else:
+                (getattr(sim, "refresh_pairs", None) or getattr(sim, "_refresh_pairs"))(force=True)
         else:
-            (getattr(sim, "refresh_pairs", None) or getattr(sim, "_refresh_pairs"))(force=True)
-    else:
-        from torchsph.config import SURFACE  # the reference's physics: no wetting model (as b14e316)
-        case = a.tree / "cases" / "perpendicular_350W"
-        ov = (["surface.wetting=false"] if "wetting" in SURFACE else []) + (
-            ["solid_contact.enabled=false"] if "[solid_contact]" in (case / "case.toml").read_text() else [])
-        _, cfg = load_case(case, ov + a.overrides)
-        _, sim = make_simulation(cfg)
-    setup = time.perf_counter() - t0
-    n0 = sim.state.n
-    if a.what == "preview":  # warm up, then time; syncs counted on steps after the timed ones
-        run_steps(sim, steps=5)
-        times = timed_steps(sim, run_steps, a.steps)
-        sp, sr = count_syncs(sim, run_steps, Counter)
-    else:  # the first steps: count syncs on steps 2..11, time the rest
-        run_steps(sim, steps=1)
-        sp, sr = count_syncs(sim, run_steps, Counter)
-        times = timed_steps(sim, run_steps, a.steps)
-    print(json.dumps(summary(sim, times, setup, sp, sr, n0)))
+            from torchsph.config import SURFACE  # the reference's physics: no wetting model (as b14e316)
+            case = a.tree / "cases" / "perpendicular_350W"
+            ov = (["surface.wetting=false"] if "wetting" in SURFACE else []) + (
+                ["solid_contact.enabled=false"] if "[solid_contact]" in (case / "case.toml").read_text() else [])
+            _, cfg = load_case(case, ov + a.overrides)
+            _, sim = make_simulation(cfg)
+        setup = time.perf_counter() - t0
+        n0 = sim.state.n
+        if a.what == "preview":  # warm up, then time; syncs counted on steps after the timed ones
+            run_steps(sim, steps=5)
+            times = timed_steps(sim, run_steps, a.steps)
+            sp, sr = count_syncs(sim, run_steps, Counter)
+        else:  # the first steps: count syncs on steps 2..11, time the rest
+            run_steps(sim, steps=1)
+            sp, sr = count_syncs(sim, run_steps, Counter)
+            times = timed_steps(sim, run_steps, a.steps)
+        print(json.dumps(summary(sim, times, setup, sp, sr, n0)))
 
 
 if __name__ == "__main__":

@@ -26,9 +26,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph.__main__ import mpi_size  # noqa: E402
 from torchsph.config import load_case  # noqa: E402
-from torchsph.runner import SerialRun, make_simulation, run_steps  # noqa: E402
+from torchsph.runner import STEP_MODE, SerialRun, make_simulation, run_steps  # noqa: E402
 
 
+@STEP_MODE()  # as a run of the CLI steps (torchsph.runner.run_case)
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("case")
