@@ -50,6 +50,21 @@ def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def pair_sum(w: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """sum_j w_ij v_ij over the neighbour axis: (R, k) weights and (R, k, d) values -> (R, d),
+    as one batched product. ``(w.unsqueeze(-1) * v).sum(1)`` makes an (R, k, d) temporary
+    and then reduces along its middle axis: 1.8x (11 rows) to 3.6x (2 112 rows) slower on one
+    thread (measured; the same sums to round-off)."""
+    return torch.bmm(w.unsqueeze(1), v).squeeze(1)
+
+
+def outer_sum(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """sum_j a_ij (x) b_ij over the neighbour axis: (R, k, p) and (R, k, q) -> (R, p, q), as one
+    batched product (the (R, k, p, q) temporary of the broadcast form, summed over k, was 7-10x
+    slower: 14 against 1.5 ms for 2 112 rows of 178)."""
+    return torch.bmm(a.transpose(1, 2), b)
+
+
 def pair_geometry(x, rows, nb, domain: Domain, h: float):
     """dx = x_i - x_j (minimum image), (R, k, d), and r = |dx| clamped away from 0."""
     dx = domain.minimum_image(x.index_select(0, rows).unsqueeze(1) - gather_nb(x, nb))
@@ -74,12 +89,12 @@ def momentum_pairs(x, u_visc, rho, p, m, rows, nb, eta: float, kernel: Kernel, h
     Vj = gather_nb(m, nb) / rho_j
     fac = (Vi * Vi + Vj * Vj) * dWr
     pt = (rho_j * p.index_select(0, rows).unsqueeze(1) + rho_i * gather_nb(p, nb)) / (rho_i + rho_j)
-    f_p = (-fac * pt).unsqueeze(-1) * dx
-    f_v = (fac * eta).unsqueeze(-1) * (u_visc.index_select(0, rows).unsqueeze(1) - gather_nb(u_visc, nb))
+    f_p = pair_sum(-fac * pt, dx)
+    f_v = pair_sum(fac * eta, u_visc.index_select(0, rows).unsqueeze(1) - gather_nb(u_visc, nb))
     minv = (1.0 / m_i).unsqueeze(-1)
     if split:
-        return f_p.sum(1) * minv, f_v.sum(1) * minv, dx, dWr
-    return (f_p + f_v).sum(1) * minv, None, dx, dWr
+        return f_p * minv, f_v * minv, dx, dWr
+    return (f_p + f_v) * minv, None, dx, dWr
 
 
 def continuity_pairs(v, m, rho, rows, nb, dx, dWr, ff, delta_h_c0: float, rho0_over_c02: float,
@@ -107,7 +122,7 @@ def continuity_pairs(v, m, rho, rows, nb, dx, dWr, ff, delta_h_c0: float, rho0_o
     if shift_coef > 0.0:
         Wk = kernel.w(torch.sqrt(r2), h)
         wgt = (m_j / rho_j) * (1.0 + 0.2 * (Wk / W0) ** 4) * dWr
-        shift = (wgt.unsqueeze(-1) * dx).sum(1) * (-shift_coef * h * h)
+        shift = pair_sum(wgt, dx) * (-shift_coef * h * h)
     return val.sum(1), shift
 
 
@@ -118,7 +133,7 @@ def wall_pairs(x, p, rho, v, rows, nb, mask, g, kernel: Kernel, h: float, domain
     Wk = kernel.w(r, h) * mask
     sumW = Wk.sum(1)
     sp = ((gather_nb(p, nb) + gather_nb(rho, nb) * dot(dx, g)) * Wk).sum(1)
-    sv = (gather_nb(v, nb) * Wk.unsqueeze(-1)).sum(1)
+    sv = pair_sum(Wk, gather_nb(v, nb))
     return sumW, sp, sv
 
 
@@ -129,7 +144,7 @@ def neighbour_average(x, v, rows, nb, weight, kernel: Kernel, h: float, domain: 
     dx, r = pair_geometry(x, rows, nb, domain, h)
     Wk = kernel.w(r, h) * (weight if weight.dim() == 2 else gather_nb(weight, nb))
     sW = Wk.sum(1)
-    avg = (gather_nb(v, nb) * Wk.unsqueeze(-1)).sum(1) / torch.where(sW > 0, sW, torch.ones_like(sW)).unsqueeze(-1)
+    avg = pair_sum(Wk, gather_nb(v, nb)) / torch.where(sW > 0, sW, torch.ones_like(sW)).unsqueeze(-1)
     return avg, sW
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from .fluid import gather_nb, pair_geometry
+from .fluid import gather_nb, pair_geometry, pair_sum
 from .kernels import Kernel
 from .neighbors import Domain
 
@@ -26,7 +26,7 @@ def colour_and_norm_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain:
     the same operations in the same order: the same bits)."""
     dx, r = pair_geometry(x, rows, nb, domain, h)
     w, Vj = colour_pair_weights(m, rho, rows, nb, r, kernel, h)
-    return (w.unsqueeze(-1) * dx).sum(1), -(Vj * r * kernel.dwdr(r, h)).sum(1) / x.shape[1]
+    return pair_sum(w, dx), -(Vj * r * kernel.dwdr(r, h)).sum(1) / x.shape[1]
 
 
 def colour_gradient_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
@@ -35,7 +35,7 @@ def colour_gradient_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain:
     truncated, i.e. at a free surface. Points into the material."""
     dx, r = pair_geometry(x, rows, nb, domain, h)
     w, _ = colour_pair_weights(m, rho, rows, nb, r, kernel, h)
-    return (w.unsqueeze(-1) * dx).sum(1)
+    return pair_sum(w, dx)
 
 
 class SelectionArrays:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .fluid import dot, embed, gather_nb, pair_geometry
+from .fluid import dot, embed, gather_nb, outer_sum, pair_geometry, pair_sum
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import ParticleState, Phase
@@ -57,11 +57,11 @@ def gradient_moments(x, f, w, m, rho, rows, nb, kernel: Kernel, h: float, domain
     dWr = kernel.dwdr(r, h) / r
     Vw = gather_nb(m, nb) / gather_nb(rho, nb) * gather_nb(w, nb) * dWr  # (R, k)
     gW = Vw.unsqueeze(-1) * dx  # V_j w_j grad_i W_ij
-    B = -(dx.unsqueeze(-1) * gW.unsqueeze(-2)).sum(1)  # (x_j - x_i) (x) grad W
+    B = -outer_sum(dx, gW)  # (x_j - x_i) (x) grad W
     df = gather_nb(f, nb) - f.index_select(0, rows).unsqueeze(1)
     if f.dim() == 1:
-        return B, (df.unsqueeze(-1) * gW).sum(1)
-    return B, (df.unsqueeze(-1) * gW.unsqueeze(-2)).sum(1)
+        return B, pair_sum(df, gW)
+    return B, outer_sum(df, gW)
 
 
 def solve_gradient(B: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
@@ -98,7 +98,7 @@ def smoothed_pairs(x, f, w, m, rho, rows, nb, mask, kernel: Kernel, h: float, do
         Vw_nb, Vw_r = gather_nb(Vw, nb), Vw.index_select(0, rows)
     Wk = kernel.w(r, h) * Vw_nb * mask
     self_w = Vw_r * kernel.w(torch.zeros((), dtype=x.dtype), h)
-    num = (gather_nb(f, nb) * Wk.unsqueeze(-1)).sum(1) + f.index_select(0, rows) * self_w.unsqueeze(-1)
+    num = pair_sum(Wk, gather_nb(f, nb)) + f.index_select(0, rows) * self_w.unsqueeze(-1)
     return num / (Wk.sum(1) + self_w).clamp_min(1e-300).unsqueeze(-1)
 
 

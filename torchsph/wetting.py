@@ -52,7 +52,7 @@ import math
 
 import torch
 
-from .fluid import dot, gather_nb, pair_geometry
+from .fluid import dot, gather_nb, pair_geometry, pair_sum
 from .free_surface import SelectionArrays, colour_pair_weights
 from .kernels import Kernel
 from .neighbors import Domain
@@ -108,7 +108,7 @@ class ContactAngle:
         S = self.S.clamp_min(0)
         dxp, r = pair_geometry(state.x, S, self.nbS, self.domain, self.h)
         w, _ = colour_pair_weights(state.m, state.rho, S, self.nbS, r, self.kernel, self.h)
-        gs = ((w * self.solS).unsqueeze(-1) * dxp).sum(1)
+        gs = pair_sum(w * self.solS, dxp)
         gn = torch.sqrt(dot(gs, gs))
         ok = (gn * self.h > self.threshold) & self.rowS
         ns = -gs / gn.clamp_min(1e-300).unsqueeze(-1)
@@ -128,7 +128,7 @@ class ContactAngle:
         self.geom = pair_geometry(state.x, rows_c, nb, self.domain, self.h)
         dxp, r = self.geom
         w, Vj = colour_pair_weights(state.m, state.rho, rows_c, nb, r, self.kernel, self.h)
-        gs = ((w * self.solid_nb).unsqueeze(-1) * dxp).sum(1)
+        gs = pair_sum(w * self.solid_nb, dxp)
         self.weights = Vj * self.kernel.w(r, self.h) * self.solid_nb
         gsn = torch.sqrt(dot(gs, gs))
         self.band_c = on.index_select(0, sub) & (gsn * self.h > self.threshold)
@@ -155,7 +155,7 @@ class ContactAngle:
         bsum = beside.sum(1)
         seen = (bsum > 0) & band
         wsum = bsum.clamp_min(1e-300)
-        n_d = unit((gather_nb(normals, nb) * beside.unsqueeze(-1)).sum(1))
+        n_d = unit(pair_sum(beside, gather_nb(normals, nb)))
         # the angle at the band's height: the surface's normal turns by its curvature on the
         # way down (cos(theta) grows by z / R over a height z on a circle / sphere of radius
         # R: the meridian's curvature kappa / (d - 1)), z from the band particle up to the
