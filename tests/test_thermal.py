@@ -337,3 +337,24 @@ def test_gaussian_bump_3d_with_a_conduction_window():
     assert e1 < 0.01
     assert float((T1 - T0).abs().max()) / 1000.0 < 0.002
     assert dH < 1e-13
+
+
+@pytest.mark.parametrize("latent", [0.0, 2.7e5], ids=["no_latent_heat", "latent_heat"])
+def test_newton_inverts_the_enthalpy_with_and_without_latent_heat(latent):
+    """newton_temperature (h and c_eff made together) recovers T from h(T) from a guess 5 K off,
+    across the mushy interval, within its own convergence test |h(T) - H| <= 1e-11 c_p T (so
+    |T - T_exact| <= 1e-11 T, as c_eff >= c_p) on every row it does not flag; the flagged ones
+    (a 5 K step across the mushy interval: Newton's three steps fall short) meet it once
+    fix_temperature's bisection has made them. Without latent heat (T_L = T_S, where the fused
+    form would divide by T_L - T_S = 0) nothing is flagged."""
+    from torchsph.thermal import ThermalParams, enthalpy, fix_temperature, newton_temperature
+    prm = ThermalParams(30.0, 700.0, latent, 1700.0, 1753.0 if latent > 0 else 1700.0)
+    T = torch.linspace(300.0, 3000.0, 2001, dtype=torch.float64)
+    H = enthalpy(T, prm, 0.0)
+    Tn, bad = newton_temperature(H, prm, 0.0, T + 5.0)
+    ok = ~bad
+    assert bool(((Tn - T).abs() <= 1e-11 * T)[ok].all()), float(((Tn - T).abs() / T)[ok].max())
+    if latent == 0.0:
+        assert int(bad.sum()) == 0
+    Tf = fix_temperature(H, prm, 0.0, Tn, bad)
+    assert bool(((Tf - T).abs() <= 1e-11 * T).all()), float(((Tf - T).abs() / T).max())

@@ -91,8 +91,10 @@ def enthalpy_and_capacity(T: torch.Tensor, prm: ThermalParams, T_ref: float, cap
     u = (T - T_SL) / (T_L - T_S) for both and the constants folded, h = c_p T + (h_f / 2) erf(u) + C,
     c_eff = c_p + K exp(-u^2): 11 operations where :func:`enthalpy` and
     :func:`effective_heat_capacity` apart take 16 (equal to round-off). ``capacity=False``: h only
-    (c_eff None)."""
+    (c_eff None). Without latent heat: :func:`enthalpy` and c_p (T_L - T_S may then be 0)."""
     cp, L = prm.specific_heat, prm.latent_heat
+    if L <= 0.0:
+        return enthalpy(T, prm, T_ref), (effective_heat_capacity(T, prm) if capacity else None)
     dT = prm.liquidus - prm.solidus
     tsl = 0.5 * (prm.solidus + prm.liquidus)
     u = (T - tsl) / dT
@@ -104,7 +106,7 @@ def enthalpy_and_capacity(T: torch.Tensor, prm: ThermalParams, T_ref: float, cap
 
 def newton_temperature(H: torch.Tensor, prm: ThermalParams, T_ref: float, guess: torch.Tensor):
     """(T after three Newton steps on h(T) = H from ``guess``, the mask of the rows whose
-    residual is not below 1e-11 c_p max(T, 1)): no read of the host (latent heat only)."""
+    residual is not below 1e-11 c_p max(T, 1)): no read of the host."""
     T = guess
     for _ in range(3):
         h, c = enthalpy_and_capacity(T, prm, T_ref)
