@@ -193,3 +193,20 @@ def test_wetting_false_is_the_model_without_an_angle(tmp_path):
     off = run(CASES / "sessile_drop_2d", ["surface.wetting=false"])
     assert torch.equal(off, run(tmp_path))
     assert not torch.equal(off, run(CASES / "sessile_drop_2d"))
+
+
+def test_a_settling_study_continues_from_its_checkpoint(tmp_path):
+    """A fine cap runs in legs (``caps.settle(..., checkpoint=)``): a run stopped at 3 ms and
+    continued to 4 ms from its checkpoint samples what one run to 4 ms samples: the centre-of-
+    mass speeds bit for bit, the fitted angles to round-off (the fit's own 1e-12 deg); the
+    samples taken before the stop are carried in the checkpoint, not taken again."""
+    over = COMMON + ["scene.dx_m=4e-5", "surface.contact_angle_deg=60", "scene.initial_angle_deg=75",
+                     "scene.radius_m=5e-4"]
+    whole = caps.settle(CASES / "sessile_drop_2d", over, 0.002, 0.004)
+    ck = tmp_path / "cap.pt"
+    first = caps.settle(CASES / "sessile_drop_2d", over, 0.002, 0.003, checkpoint=ck)
+    assert len(first["angles"]) == 2 and ck.exists()
+    legs = caps.settle(CASES / "sessile_drop_2d", over, 0.002, 0.004, checkpoint=ck)
+    assert len(legs["angles"]) == len(whole["angles"]) == 3
+    assert legs["speeds"] == whole["speeds"]
+    assert max(abs(a - b) for a, b in zip(legs["angles"], whole["angles"])) < 1e-9

@@ -49,28 +49,46 @@ def contact_angle(state: ParticleState, dx: float, plate_top: float = 0.0, clear
 
 
 
-def settle(case, overrides=(), t_from: float = 0.014, t_end: float = 0.020, every: float = 1.0e-3) -> dict:
+def settle(case, overrides=(), t_from: float = 0.014, t_end: float = 0.020, every: float = 1.0e-3,
+           checkpoint=None) -> dict:
     """Run a sessile-drop case (``case``: its folder, with ``overrides``) to ``t_end`` and
     sample, every ``every`` s from ``t_from``, the fitted contact angle (deg) and the melt's
-    centre-of-mass speed (m/s): ``{"angles", "speeds", "particles", "wall_s"}``."""
-    import time
+    centre-of-mass speed (m/s): ``{"angles", "speeds", "particles", "wall_s"}``.
 
+    ``checkpoint`` (a file path): written atomically every ``every`` s of process with the
+    samples so far, and continued from when it exists, so a fine drop runs in legs; one
+    written for other physics is refused, naming what differs."""
+    import time
+    from pathlib import Path
+
+    from . import checkpoint as ckpt
     from .config import load_case
-    from .runner import make_simulation, run_steps
+    from .runner import make_simulation, resume, run_steps
 
     _, cfg = load_case(case, list(overrides) + [f"run.t_end_s={t_end}"])
     scene, sim = make_simulation(cfg)
-    angles, speeds = [], []
+    angles, speeds, wall0 = [], [], 0.0
+    if checkpoint is not None and Path(checkpoint).exists():
+        extra = resume(sim, checkpoint, cfg)
+        angles, speeds, wall0 = list(extra["angles"]), list(extra["speeds"]), float(extra["wall_s"])
     t0 = time.perf_counter()
-    k = 0
-    while t_from + k * every <= t_end * (1 + 1e-9):
-        run_steps(sim, t_end=t_from + k * every)
+    # stops: every ``every`` s up to t_from (checkpoints only), then the samples t_from + j every
+    n_pre = int(math.floor(t_from / every * (1 + 1e-9)))
+    stops = [i * every for i in range(1, n_pre + 1) if i * every < t_from * (1 - 1e-9)]
+    stops += [t_from + j * every for j in range(int(math.floor((t_end - t_from) / every * (1 + 1e-9))) + 1)]
+    for t_k in stops:
+        if sim.t >= t_k * (1 - 1e-12):
+            continue  # done before the restart
+        run_steps(sim, t_end=t_k)
         s = sim.state
-        angles.append(contact_angle(s, scene.dx)["angle_deg"])
-        fl = s.phase == Phase.FLUID
-        speeds.append(float(((s.m[fl, None] * s.v[fl]).sum(0) / s.m[fl].sum()).norm()))
-        k += 1
-    return {"angles": angles, "speeds": speeds, "particles": s.n, "wall_s": time.perf_counter() - t0}
+        if t_k >= t_from * (1 - 1e-9):
+            angles.append(contact_angle(s, scene.dx)["angle_deg"])
+            fl = s.phase == Phase.FLUID
+            speeds.append(float(((s.m[fl, None] * s.v[fl]).sum(0) / s.m[fl].sum()).norm()))
+        if checkpoint is not None:
+            ckpt.save(sim, checkpoint, ckpt.config_hash(cfg), {
+                "angles": angles, "speeds": speeds, "wall_s": wall0 + time.perf_counter() - t0}, ckpt.physics(cfg))
+    return {"angles": angles, "speeds": speeds, "particles": sim.state.n, "wall_s": wall0 + time.perf_counter() - t0}
 
 
 def fallen_mass(z: torch.Tensor, m: torch.Tensor, dx: float, min_fraction: float = 0.1) -> tuple[float, float | None]:

@@ -9,6 +9,8 @@ wall time: the README's table.
     python scripts/studies/sessile_drop.py --dim 2                    # ~5 min
     python scripts/studies/sessile_drop.py --dim 3 --angles 60 90 120 # ~15 min
     python scripts/studies/sessile_drop.py --dim 2 --angles 60 --set scene.dx_m=2.5e-5
+    python scripts/studies/sessile_drop.py --dim 3 --angles 120 --set scene.dx_m=3.125e-5 \
+        --checkpoint-dir runs/sessile_r16   # hours: run it again to continue after a stop
 """
 from __future__ import annotations
 
@@ -29,7 +31,11 @@ def main():
     ap.add_argument("--angles", type=float, nargs="+", default=[30.0, 60.0, 90.0, 120.0], help="theta_eq (deg)")
     ap.add_argument("--offset", type=float, default=15.0, help="start this far off theta_eq (deg)")
     ap.add_argument("--set", action="append", default=[], help="case overrides, section.key=value")
+    ap.add_argument("--checkpoint-dir", type=Path, default=None,
+                    help="checkpoint each cap here every ms of process (theta_NNN.pt) and continue from it")
     a = ap.parse_args()
+    if a.checkpoint_dir is not None:
+        a.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     case = ROOT / "cases" / f"sessile_drop_{a.dim}d"
     print("| theta_eq | started at | R, dx | settled (mean, 14-20 ms) | spread | max speed / (sigma/eta) | particles | wall |")
     print("|---|---|---|---|---|---|---|---|")
@@ -39,7 +45,8 @@ def main():
         if a.dim == 2:  # the verified 2-D set-up (tests/test_wetting.py): dx = R/15, the 30 deg cap R = 30 dx
             over += ["scene.dx_m=3.3333e-5", f"scene.radius_m={1e-3 if th < 45 else 5e-4}"]
         _, cfg = load_case(case, over + a.set)
-        r = settle(case, over + a.set)
+        ck = None if a.checkpoint_dir is None else a.checkpoint_dir / f"theta_{th:03.0f}.pt"
+        r = settle(case, over + a.set, checkpoint=ck)
         ang = r["angles"]
         cap = (cfg["surface"]["tension_N_m"] / cfg["fluid"]["viscosity_Pa_s"])
         print(f"| {th:.0f}° | {start:.0f}° | {cfg['scene']['radius_m'] * 1e3:.2f} mm, {cfg['scene']['dx_m'] * 1e3:.4f} mm | "
