@@ -389,7 +389,8 @@ class WeaklyCompressibleFluid:
         has = sumW > 0
         safe = torch.where(has, sumW, torch.ones_like(sumW))
         pw = torch.where(has, sp / safe, torch.full_like(sp, self.prm.background_pressure))
-        state.rho = state.rho.index_copy(0, rows, self.inverse_eos(pw))
+        state.rho = state.rho.index_copy_(0, rows, self.inverse_eos(pw)).view_as(state.rho)  # (in place, a new
+        # object: caches that know the densities by identity see them as new; see step.renewed)
         v_w = v_eval.index_select(0, rows)
         u_wall = torch.where(has.unsqueeze(-1), 2.0 * v_w - sv / safe.unsqueeze(-1), v_w)
         return p.index_copy_(0, rows, pw), u_wall, v_w
