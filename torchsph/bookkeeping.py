@@ -247,6 +247,8 @@ def select_pairs(sim, new_table: bool = False):
                                depth=getattr(sim.comm, "depth", 2))
     if sim.surface is not None:
         sim.surface.select_pairs(sim.state, sim.nl.table)
+        if sim.fluid is not None:
+            sim.surface.share_pairs(sim.fluid.rows_f, sim.fluid.nb_f, sim.nl.table)
     if sim.thermal is not None:
         sim.thermal.owned = sim.comm.owned(sim)
         sim.thermal.select_pairs(sim.state, sim.nl.table, active=sim.active_mask,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from .fluid import gather_nb, pair_geometry, pair_sum
+from .fluid import gather_nb, pair_dwdr_r, pair_geometry, pair_sum
 from .kernels import Kernel
 from .neighbors import Domain
 
@@ -17,7 +17,7 @@ def colour_pair_weights(m, rho, rows, nb, r, kernel: Kernel, h: float):
     rho_j = gather_nb(rho, nb)
     Vi = m.index_select(0, rows).unsqueeze(1) / rho_i
     Vj = gather_nb(m, nb) / rho_j
-    return (Vi * Vi + Vj * Vj) * rho_i / (rho_i + rho_j) * (kernel.dwdr(r, h) / r) / Vi, Vj
+    return (Vi * Vi + Vj * Vj) * rho_i / (rho_i + rho_j) * pair_dwdr_r(r, kernel, h) / Vi, Vj
 
 
 def colour_and_norm_pairs(x, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
@@ -80,6 +80,7 @@ class ColourGradient:
         self.kernel, self.h, self.domain, self.threshold = kernel, h, domain, threshold
         self.fn = torch.compile(colour_gradient_pairs, dynamic=True) if compile else colour_gradient_pairs
         self.wanted: dict[str, torch.Tensor] = {}
+        self.nbs: dict[str, torch.Tensor | None] = {}  # the rows' gathered table, where a term gave it
         self.table = None
         self.memo = None  # (x, rho, {name: gradient of its rows})
         self.norm_rows = None  # rows whose Laplacian normalisation the next evaluation also makes (want_norm)
@@ -97,12 +98,16 @@ class ColourGradient:
             return m[3]
         return None
 
-    def want(self, name: str, rows: torch.Tensor | None, table=None):
-        """Term ``name`` reads the rows ``rows`` of the neighbour table ``table`` (None: nothing)."""
+    def want(self, name: str, rows: torch.Tensor | None, table=None, nb: torch.Tensor | None = None):
+        """Term ``name`` reads the rows ``rows`` of the neighbour table ``table`` (None: nothing);
+        ``nb``: those rows of the table, gathered already (a term's own, whose pair geometry an
+        evaluation then shares: :class:`torchsph.fluid.GeometryMemo`)."""
         if rows is None:
             self.wanted.pop(name, None)
+            self.nbs.pop(name, None)
         else:
             self.wanted[name] = rows
+            self.nbs[name] = nb
             self.table = table
         self.memo = None
 
@@ -120,7 +125,9 @@ class ColourGradient:
         nr = None if torch.compiler.is_compiling() else self.norm_rows
         if len(sets) == 1 and nr is None:
             name, rows = sets[0]
-            nb = self.table.gather(rows, within=True)[0]
+            nb = self.nbs.get(name)
+            if nb is None:
+                nb = self.table.gather(rows, within=True)[0]
             return {name: self.fn(state.x, state.m, state.rho, rows, nb, self.kernel, self.h, self.domain)}
         mark = torch.zeros(state.n, dtype=torch.bool, device=state.x.device)
         for rows in [r for _, r in sets] + ([nr] if nr is not None else []):

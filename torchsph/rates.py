@@ -8,12 +8,21 @@ from __future__ import annotations
 
 import torch
 
+from .fluid import GEOMETRY
 from .terms import owned_sum
 
 
 def accelerations(sim, v_eval, terms: bool = False):
     """Fluid (pressure, viscous, body), free-surface and the force terms' accelerations at
-    the state (``terms``: also each one by name, for a diagnosis)."""
+    the state (``terms``: also each one by name, for a diagnosis). The terms that read the
+    same pairs share their geometry (:class:`torchsph.fluid.GeometryMemo`)."""
+    if torch.compiler.is_compiling():  # (a traced step fuses the geometry into each pair sum)
+        return _accelerations(sim, v_eval, terms)
+    with GEOMETRY:
+        return _accelerations(sim, v_eval, terms)
+
+
+def _accelerations(sim, v_eval, terms: bool):
     out = sim.fluid.momentum(sim.state, v_eval, terms=terms)
     for term in sim.force_terms:
         rows, a = term.acceleration(sim, v_eval)

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .fluid import dot, embed, gather_nb, outer_sum, pair_geometry, pair_sum
+from .fluid import dot, embed, gather_nb, outer_sum, pair_dwdr_r, pair_geometry, pair_sum
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import ParticleState, Phase
@@ -54,7 +54,7 @@ def gradient_moments(x, f, w, m, rho, rows, nb, kernel: Kernel, h: float, domain
     moment matrix B_i = sum_j V_j w_j (x_j - x_i) (x) grad_i W_ij (R, d, d) and
     G_i = sum_j V_j w_j (f_j - f_i) (x) grad_i W_ij ((R, d) or (R, d, d))."""
     dx, r = pair_geometry(x, rows, nb, domain, h)
-    dWr = kernel.dwdr(r, h) / r
+    dWr = pair_dwdr_r(r, kernel, h)
     Vw = gather_nb(m, nb) / gather_nb(rho, nb) * gather_nb(w, nb) * dWr  # (R, k)
     gW = Vw.unsqueeze(-1) * dx  # V_j w_j grad_i W_ij
     B = -outer_sum(dx, gW)  # (x_j - x_i) (x) grad W
@@ -142,10 +142,19 @@ class SurfaceForces:
         self.rows_f = torch.nonzero(fluid).squeeze(1)
         self.nb_f, self.mask_f = table.gather(self.rows_f, within=True)
         self.fluid = fluid
-        self.colour.want("surface", self.rows_f, table)
+        self.colour.want("surface", self.rows_f, table, self.nb_f)
         self.bufs.reset()  # the evaluation's whole-length arrays, made at its first evaluation
         if self.wetting is not None:
             self.wetting.select(state, self.nb_f, self.mask_f, table)
+
+    def share_pairs(self, rows: torch.Tensor, nb: torch.Tensor, table):
+        """At a selection: where the momentum's rows ``rows`` (and their table ``nb``) are the
+        surface's (every fluid row: one process), read those same tensors, so that an
+        evaluation makes their pair geometry once (:class:`torchsph.fluid.GeometryMemo`);
+        a decomposition's momentum rows (its own and the near ghosts) are not, and stay apart."""
+        if rows.shape == self.rows_f.shape and nb.shape == self.nb_f.shape and torch.equal(rows, self.rows_f):
+            self.rows_f, self.nb_f = rows, nb
+            self.colour.want("surface", rows, table, nb)
 
     def tension(self, T: torch.Tensor) -> torch.Tensor:
         prm = self.prm
