@@ -254,3 +254,26 @@ def test_active_set_dilation_holds_every_particle_within_the_radius(seed, dim, r
         assert not bool(dense[d > (1.0 + 1.0 / A.VOXELS_PER_RADIUS) * radius * dim ** 0.5].any())
     else:
         assert not bool(dense.any())
+
+
+def test_a_trimmed_gather_holds_the_same_pairs_in_fewer_columns():
+    """A lattice with a packed blob (16x the density: its rows are ~4x as wide as the
+    lattice's): the rows far from the blob, gathered with ``trim``, come in at most 3/4 of the
+    table's width, a multiple of 8, with exactly the pairs of the untrimmed gather (every
+    dropped column is padding in all of them); rows that need the full width keep it."""
+    from torchsph.neighbors import NeighbourTable
+
+    g = torch.linspace(0.0, 1.0, 41, dtype=torch.float64)
+    lattice = torch.cartesian_prod(g, g)
+    blob = 0.1 + 0.0625 * torch.rand(400, 2, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    x = torch.cat([lattice, blob])
+    dom = Domain(lo=(-1.0, -1.0), hi=(2.0, 2.0), periodic=(False, False))
+    T = NeighbourTable.dense(*build_table(x, 0.06, dom))
+    far = torch.nonzero((x[:, 0] > 0.5) & (x[:, 1] > 0.5)).squeeze(1)
+    nb, mask = T.gather(far, within=True)
+    nb_t, mask_t = T.gather(far, within=True, trim=True)
+    assert nb_t.shape[1] <= 0.75 * T.k and nb_t.shape[1] % 8 == 0
+    pairs = lambda nb, m: set(zip(far.unsqueeze(1).expand_as(nb)[m].tolist(), nb[m].tolist()))  # noqa: E731
+    assert pairs(nb_t, mask_t) == pairs(nb, mask) and mask_t.sum() > 0
+    near = torch.arange(x.shape[0] - 400, x.shape[0])  # the blob's own rows: the table is theirs
+    assert T.gather(near, within=True, trim=True)[0].shape[1] == T.k

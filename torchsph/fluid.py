@@ -288,7 +288,7 @@ class WeaklyCompressibleFluid:
             own = torch.nonzero(fluid & (level == 0)).squeeze(1)
             self.rows_f = torch.cat([own, torch.nonzero(fluid & (level > 0) & (level <= depth)).squeeze(1)])
             self.n_momentum = own.numel()
-        self.nb_f = table.gather(self.rows_f, within=True)[0]
+        self.nb_f = table.gather(self.rows_f, within=True, trim=True)[0]
         self.ff_mask = gather_nb(fluid, self.nb_f).to(state.dtype)  # source is fluid
         self.has_walls = bool((~fluid).any())
         if self.has_walls:

@@ -140,7 +140,7 @@ class SurfaceForces:
         """The fluid particles' rows of the neighbour table (a :class:`~torchsph.neighbors.NeighbourTable`)."""
         fluid = state.phase == Phase.FLUID
         self.rows_f = torch.nonzero(fluid).squeeze(1)
-        self.nb_f, self.mask_f = table.gather(self.rows_f, within=True)
+        self.nb_f, self.mask_f = table.gather(self.rows_f, within=True, trim=True)
         self.fluid = fluid
         self.colour.want("surface", self.rows_f, table, self.nb_f)
         self.bufs.reset()  # the evaluation's whole-length arrays, made at its first evaluation

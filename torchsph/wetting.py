@@ -94,7 +94,7 @@ class ContactAngle:
             self.S, inv = torch.unique(torch.where(solid, self.nb_c, -1), return_inverse=True)
             self.at_S = inv  # (R, k): each entry's place in S (S[0] = -1 where some entry is not solid)
             S = self.S.clamp_min(0)
-            self.nbS, maskS = table.gather(S)
+            self.nbS, maskS = table.gather(S, trim=True)
             self.solS = (gather_nb(state.phase != Phase.FLUID, self.nbS) & maskS).to(state.x.dtype)
             self.rowS = table.has_row().index_select(0, S) & (self.S >= 0)
 
