@@ -298,11 +298,26 @@ def windowed(*extra):
                  "numerics.conduction_window=0.25", *extra)
 
 
-def test_a_split_operator_whose_window_closes_at_every_step_is_the_pair_sum():
+def test_a_split_operator_whose_window_closes_at_every_step_is_the_pair_sum(monkeypatch):
     """The split (fast rows every step, slow rows' mutual pairs once per window) through melt,
     feed and partial rebuilds, with the window closed at every step (factor 1): the fast rows'
     product, the boundary pairs and the slow pairs less the boundary are the whole pair sum to
-    round-off, at every step, while slow rows exist."""
+    round-off, at every step, while slow rows exist; splits kept through a selection (no new
+    fast row) with the new values among them."""
+    from torchsph.heat_operator import SlowSplit
+
+    made, revalued = [0], [0]
+    init, revalue = SlowSplit.__init__, SlowSplit.revalue
+
+    def counted_init(self, *a):
+        made[0] += 1
+        init(self, *a)
+
+    def counted_revalue(self, op):
+        revalued[0] += 1
+        revalue(self, op)
+    monkeypatch.setattr(SlowSplit, "__init__", counted_init)
+    monkeypatch.setattr(SlowSplit, "revalue", counted_revalue)
     _, sim = make_simulation(windowed())
     th = sim.thermal
     rec = checking(sim)
@@ -320,6 +335,7 @@ def test_a_split_operator_whose_window_closes_at_every_step_is_the_pair_sum():
     assert int((sim.state.phase == Phase.FLUID).sum()) > 0 and sim.feeder.n_fed >= 1 and sim.nl.n_partial > 0
     assert rec["worst"] < 1e-12, rec
     assert max(slow) > 0 and int(th.op.split.fast.sum()) > 0, slow
+    assert revalued[0] > made[0] > 0, (made, revalued)  # (a new split takes its values by revalue too)
 
 
 def test_a_window_waits_and_conserves_energy_and_a_restart_inside_it_is_bit_for_bit(tmp_path):

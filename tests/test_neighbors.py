@@ -50,21 +50,25 @@ def test_cell_list_equals_brute_force(c, cells_per_radius):
 @given(clouds(), st.integers(0, 2**31 - 1))
 def test_grouped_passes_give_the_table_of_one_pass_at_a_time(c, seed):
     """The stencil's passes searched in groups (all at once for few rows) give exactly the
-    table, order within rows included, that one pass at a time gives; and a table of some
+    table, order within rows included, that one pass at a time gives; so do the cells' runs
+    found by binary search instead of read from the cells' start table; and a table of some
     rows (a partial rebuild's) is those rows of the whole table."""
     from torchsph import neighbors
 
     x, radius, dom = c
     rows = torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(seed))[: max(1, x.shape[0] // 3)]
     grouped = build_table(x, radius, dom), build_table(x, radius, dom, rows=rows)
-    saved = neighbors.PASS_ROWS
+    saved = neighbors.PASS_ROWS, neighbors.DENSE_CELLS
     try:
         neighbors.PASS_ROWS = 1  # one pass per group
         single = build_table(x, radius, dom), build_table(x, radius, dom, rows=rows)
+        neighbors.PASS_ROWS, neighbors.DENSE_CELLS = saved[0], 0  # binary searches of the sorted cells
+        searched = build_table(x, radius, dom), build_table(x, radius, dom, rows=rows)
     finally:
-        neighbors.PASS_ROWS = saved
-    for a, b in zip(grouped, single):
+        neighbors.PASS_ROWS, neighbors.DENSE_CELLS = saved
+    for a, b, s in zip(grouped, single, searched):
         assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+        assert torch.equal(a[0], s[0]) and torch.equal(a[1], s[1])
     nb, mask = grouped[0]
     k = grouped[1][0].shape[1]
     assert torch.equal(grouped[1][0], nb[rows, :k]) and torch.equal(grouped[1][1], mask[rows, :k])

@@ -251,12 +251,17 @@ class SlowSplit:
         self.b_j = gj.index_select(0, b)  # the slow particle
         self.b_row = rj.index_select(0, b)  # its place in rows
         self.R = R
-        # the values, G's of this build (a split is made anew with each build of G)
-        self.g = op.g.index_select(0, e)
-        self.g_b = self.g.index_select(0, b)
+        self.e, self.b, self.csr_index = e, b, csr_index
+        self.revalue(op)
+
+    def revalue(self, op: "ConductionOperator"):
+        """The values of G's latest build (its structure and these fast rows unchanged): the
+        split a new one of the same fast rows would be, at the cost of a gather of their entries."""
+        self.g = op.g.index_select(0, self.e)
+        self.g_b = self.g.index_select(0, self.b)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            self.G = torch.sparse_csr_tensor(*csr_index, self.g, size=(fr.numel(), self.cols.numel()),
+            self.G = torch.sparse_csr_tensor(*self.csr_index, self.g, size=(self.f_at.numel(), self.cols.numel()),
                                              check_invariants=False)
 
     def apply(self, op: "ConductionOperator", T, m, rho, slow: torch.Tensor | None) -> torch.Tensor:

@@ -700,10 +700,18 @@ def split_operator(th, state: ParticleState):
     if th.window <= 0 or op.at is not None or (comm is not None and comm.size > 1) or not op.n_static:
         op.split = None
         return
+    prev = op.split  # (a split of this G's structure: made at an earlier build of the same selection's G)
     if fast is not None and fast.shape[0] == state.n:  # a restart: the rows as the run had them
         fast = fast.index_select(0, op.rows)
     else:
         fast = slow_rows(th, state)
+        if prev is not None:  # a row fast once stays fast while G's structure lasts: where no other row
+            # turns fast (a phase change inside the hot zone), the split is kept and takes the new values
+            more = fast & ~prev.fast
+            if not bool(more.any()):
+                prev.revalue(op)
+                return
+            fast = fast | prev.fast
     op.split = SlowSplit(op, fast)
 
 
