@@ -705,13 +705,11 @@ def split_operator(th, state: ParticleState):
         fast = fast.index_select(0, op.rows)
     else:
         fast = slow_rows(th, state)
-        if prev is not None:  # a row fast once stays fast while G's structure lasts: where no other row
-            # turns fast (a phase change inside the hot zone), the split is kept and takes the new values
-            more = fast & ~prev.fast
-            if not bool(more.any()):
-                prev.revalue(op)
-                return
-            fast = fast | prev.fast
+        if prev is not None and not bool((fast & ~prev.fast).any()):  # no row turns fast (a phase change
+            # inside the hot zone): the split is kept, with the new values (rows fast before stay so until
+            # the next change of the fast rows; a restart takes the split's rows: window_state)
+            prev.revalue(op)
+            return
     op.split = SlowSplit(op, fast)
 
 
