@@ -4,8 +4,9 @@ Runs ``cases/sessile_drop_3d`` at theta_eq (``--angle``) from a cap started at `
 degrees and prints, every ``--every`` s: the fitted contact angle (caps.contact_angle), the
 angle the wetting force reads at the contact band (acos(cos theta_eq - drive) over the band
 particles: mean, median, range), and the foot (the largest distance from the drop's axis in
-its lowest layer, in dx). At the end, each layer's largest distance from the axis (the drop's
-profile). Receding and advancing caps of the same theta_eq compared so: docs/VERIFICATION.md.
+its lowest layer, in dx). At the end, per layer of the melt: its largest distance from the axis
+(the drop's profile), its mean pressure and speed. Receding and advancing caps of the same
+theta_eq compared so: docs/VERIFICATION.md.
 
     python scripts/studies/cap_foot.py --start 105          # R/8, to 14 ms: ~4 min
     python scripts/studies/cap_foot.py --start 135
@@ -67,9 +68,15 @@ def main():
             print(f"| {1e3 * k * a.every:.0f} | {fit:.2f} | {read} | {int(seen.sum())} | {r[layer == 0].max():.2f} |",
                   flush=True)
         r, layer = axis_distance(sim.state, scene.dx)
-    print("layers from the plate up, largest distance from the axis (dx): "
-          + " ".join(f"{r[layer == L].max():.2f}" if bool((layer == L).any()) else "-"
-                     for L in range(int(layer.max()) + 1)))
+        s = sim.state
+        fl = s.phase == Phase.FLUID
+        p, speed = sim.fluid.eos(s.rho[fl]), s.v[fl].norm(dim=1)
+    print("| layer from the plate | largest distance from the axis, dx | pressure, mean Pa | speed, mean mm/s |")
+    print("|---|---|---|---|")
+    for L in range(int(layer.max()) + 1):
+        sel = layer == L
+        if bool(sel.any()):
+            print(f"| {L} | {r[sel].max():.2f} | {p[sel].mean():.1f} | {1e3 * speed[sel].mean():.2f} |")
 
 
 if __name__ == "__main__":
