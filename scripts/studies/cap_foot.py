@@ -5,7 +5,8 @@ degrees and prints, every ``--every`` s: the fitted contact angle (caps.contact_
 angle the wetting force reads at the contact band (acos(cos theta_eq - drive) over the band
 particles: mean, median, range), and the foot (the largest distance from the drop's axis in
 its lowest layer, in dx). At the end, per layer of the melt: its largest distance from the axis
-(the drop's profile), its mean pressure and speed. Receding and advancing caps of the same
+(the drop's profile), its mean pressure and speed, its surface particles (those in the contact
+band) and the surface force's curvature there. Receding and advancing caps of the same
 theta_eq compared so: docs/VERIFICATION.md.
 
     python scripts/studies/cap_foot.py --start 105          # R/8, to 14 ms: ~4 min
@@ -71,12 +72,21 @@ def main():
         s = sim.state
         fl = s.phase == Phase.FLUID
         p, speed = sim.fluid.eos(s.rho[fl]), s.v[fl].norm(dim=1)
-    print("| layer from the plate | largest distance from the axis, dx | pressure, mean Pa | speed, mean mm/s |")
-    print("|---|---|---|---|")
+        surf = sim.surface_model
+        kappa = surf.kappa[fl]  # the surface force's curvature (0 off the surface)
+        band = torch.zeros(s.n, dtype=torch.bool).index_copy_(0, surf.rows_f, wet.band)[fl]
+        fit = contact_angle(s, scene.dx)
+    print(f"the fitted sphere's 2/R: {2.0 / fit['R']:.0f} 1/m")
+    print("| layer from the plate | largest distance from the axis, dx | pressure, mean Pa | speed, mean mm/s "
+          "| surface particles (band) | their curvature, mean 1/m |")
+    print("|---|---|---|---|---|---|")
     for L in range(int(layer.max()) + 1):
         sel = layer == L
+        on = sel & (kappa != 0)
         if bool(sel.any()):
-            print(f"| {L} | {r[sel].max():.2f} | {p[sel].mean():.1f} | {1e3 * speed[sel].mean():.2f} |")
+            k = f"{kappa[on].mean():.0f}" if bool(on.any()) else "-"
+            print(f"| {L} | {r[sel].max():.2f} | {p[sel].mean():.1f} | {1e3 * speed[sel].mean():.2f} "
+                  f"| {int(on.sum())} ({int((on & band).sum())}) | {k} |")
 
 
 if __name__ == "__main__":
