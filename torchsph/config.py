@@ -195,6 +195,11 @@ SURFACE = {
                              doc="equilibrium contact angle theta_eq between melt and solid or wall "
                                  "(Young's force at the contact line; omit: no wetting model, "
                                  "a melt/solid contact is not a surface)", field="contact_angle"),
+    "band_curvature": Key("str", default="beside", choices=("beside", "clear"),
+                          doc="the curvature the contact band's tension takes: 'beside', the surface "
+                              "particles beside the band; 'clear', those of them with no solid in their "
+                              "support (a receding 3-D cap then reaches its angle: docs/VERIFICATION.md)",
+                          field="band_curvature"),
     "wetting": Key("bool", default=True,
                    doc="false: contact_angle_deg is ignored (the thesis's model, c = 1 in melt and solid), "
                        "e.g. to compare with a version before the wetting model", field="wetting"),

@@ -47,6 +47,8 @@ class SurfaceParams:
     zero_net_force: bool = False  # remove the discrete forces' net resultant (a free body only)
     contact_angle: float | None = None  # theta_eq between melt and solid, deg (None: no wetting model)
     wetting: bool = True  # False: contact_angle ignored
+    band_curvature: str = "beside"  # the contact band's curvature: of the surface beside it, or ("clear") of
+    # those beside particles with no solid in their support
 
 
 def gradient_moments(x, f, w, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):
@@ -127,7 +129,7 @@ class SurfaceForces:
         self.colour = colour if colour is not None else ColourGradient(kernel, h, domain, params.threshold, compile)
         self.bufs = SelectionArrays()  # the per-particle fields of an evaluation (see accelerations)
         self.wetting = None if params.contact_angle is None or not params.wetting else ContactAngle(
-            params.contact_angle, kernel, h, domain, params.threshold)
+            params.contact_angle, kernel, h, domain, params.threshold, clear=params.band_curvature == "clear")
         self._fns = {"moments": gradient_moments, "smooth": smoothed_pairs}
         if compile:  # the pair sums fuse; the batched d x d solves stay eager
             self._fns = {k: torch.compile(f, dynamic=True) for k, f in self._fns.items()}

@@ -26,6 +26,12 @@ magnitude, so the equilibrium angle does not hang on how the line's length is sh
   beside, a height z above the band particle (exact on a circle or sphere). Without that, the
   angle would be read a few spacings up the surface, and a cap settle steeper than theta_eq
   by about z / R rad.
+- The band's curvature (``surface.band_curvature``): by default the surface particles' beside
+  it. Near a steep foot those are the flank below the bulge, curved less than the cap, and a 3-D
+  cap drawing in from 105 deg to 120 stopped at 107 deg (R/8) to 114 deg (R/16): the pressure,
+  which balances the cap's curvature, pushed the foot out against Young's pull. With ``"clear"``
+  the band takes the curvature of the surface particles beside it that have no solid in their
+  support (those just above the band's own layer), and that cap reaches 122-123 deg at R/8.
 - Edges (Gibbs's criterion, Gibbs 1878; Oliver, Huh & Mason 1977): where the solid's
   surface turns within the support, e.g. a wire's end face meeting its side, the line's
   angle is measured against every outward normal of the solid's surface there (the solid's
@@ -70,8 +76,12 @@ class ContactAngle:
 
     pin = True  # Gibbs's criterion at the solid's edges (False: the blended normal alone, for tests)
 
-    def __init__(self, angle_deg: float, kernel: Kernel, h: float, domain: Domain, threshold: float):
+    def __init__(self, angle_deg: float, kernel: Kernel, h: float, domain: Domain, threshold: float,
+                 clear: bool = False):
+        """``clear``: the band's curvature from the surface particles beside it that have no solid
+        in their support (else from all of them; see the module's docstring)."""
         self.cos = math.cos(math.radians(angle_deg))
+        self.clear = clear
         self.kernel, self.h, self.domain, self.threshold = kernel, h, domain, threshold
         self.band = None  # (rows,) bool: the contact band among the melt rows at the last evaluation
         self.bufs = SelectionArrays()
@@ -132,6 +142,8 @@ class ContactAngle:
         self.weights = Vj * self.kernel.w(r, self.h) * self.solid_nb
         gsn = torch.sqrt(dot(gs, gs))
         self.band_c = on.index_select(0, sub) & (gsn * self.h > self.threshold)
+        if self.clear:  # the rows with solid inside their kernel support
+            self.near_c = ((self.solid_nb > 0) & (r < self.kernel.radius(self.h))).any(1)
         self.n_w = -gs / gsn.clamp_min(1e-300).unsqueeze(-1)
         out = -(g.index_select(0, sub) - gs)  # the melt-only colour gradient, reversed: out of the melt
         self.t = unit(out - dot(out, self.n_w).unsqueeze(-1) * self.n_w)
@@ -164,6 +176,12 @@ class ContactAngle:
         up = -dot(dxp, self.n_w.unsqueeze(1))  # (x_j - x_i) . n_w
         z_d = (up * beside).sum(1) / wsum
         k_d = (gather_nb(kappa, nb) * beside).sum(1) / wsum / (state.dim - 1)
+        k_t = k_d  # the curvature the band's tension takes
+        if self.clear:  # from the surface beside with no solid in its support, where there is some
+            near = self.bufs.whole("near", surface, rows, torch.zeros_like(self.band).index_copy_(0, sub, self.near_c))
+            far = gather_nb(surface & ~near, nb).to(Wk.dtype) * Wk
+            fsum = far.sum(1)
+            k_t = torch.where(fsum > 0, (gather_nb(kappa, nb) * far).sum(1) / fsum.clamp_min(1e-300) / (state.dim - 1), k_d)
         cos_d = dot(n_d, self.n_w) - k_d * z_d
         if self.S is not None:
             ns_nb, ns_ok = self.solid_normals(state)
@@ -185,7 +203,7 @@ class ContactAngle:
             cos_d = torch.clamp(torch.full_like(cos_d, self.cos), lo, hi)
         n_rows = rows.shape[0]
         # the surface's curvature and normal beside the band
-        self.k_band = torch.zeros(n_rows, dtype=Wk.dtype, device=Wk.device).index_copy_(0, sub, k_d * (state.dim - 1))
+        self.k_band = torch.zeros(n_rows, dtype=Wk.dtype, device=Wk.device).index_copy_(0, sub, k_t * (state.dim - 1))
         self.n_band = torch.zeros(n_rows, state.dim, dtype=Wk.dtype, device=Wk.device).index_copy_(
             0, sub, torch.where(band.unsqueeze(-1), n_d, torch.zeros_like(n_d)))
         # the band particles within a support: 2-D, one contact point's; 3-D, a chord of the
