@@ -31,7 +31,9 @@ magnitude, so the equilibrium angle does not hang on how the line's length is sh
   cap drawing in from 105 deg to 120 stopped at 107 deg (R/8) to 114 deg (R/16): the pressure,
   which balances the cap's curvature, pushed the foot out against Young's pull. With ``"clear"``
   the band takes the curvature of the surface particles beside it that have no solid in their
-  support (those just above the band's own layer), and that cap reaches 122-123 deg at R/8.
+  support (those just above the band's own layer), and that cap reaches 122-123 deg at R/8;
+  but where the line sits on a wire's edge those particles are the neck below it, and a
+  pendant drop then falls whole, 25 % light: opt-in.
 - Edges (Gibbs's criterion, Gibbs 1878; Oliver, Huh & Mason 1977): where the solid's
   surface turns within the support, e.g. a wire's end face meeting its side, the line's
   angle is measured against every outward normal of the solid's surface there (the solid's
