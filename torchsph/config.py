@@ -198,8 +198,8 @@ SURFACE = {
     "band_curvature": Key("str", default="beside", choices=("beside", "clear"),
                           doc="the curvature the contact band's tension takes: 'beside', the surface "
                               "particles beside the band; 'clear', those of them with no solid in their "
-                              "support (a receding 3-D cap on a flat solid then reaches its angle; a drop "
-                              "under a wire's end falls too light: docs/VERIFICATION.md)",
+                              "support, 'beside' where the solid turns (an edge): a receding 3-D cap then "
+                              "reaches its angle (docs/VERIFICATION.md)",
                           field="band_curvature"),
     "wetting": Key("bool", default=True,
                    doc="false: contact_angle_deg is ignored (the thesis's model, c = 1 in melt and solid), "

@@ -31,9 +31,10 @@ magnitude, so the equilibrium angle does not hang on how the line's length is sh
   cap drawing in from 105 deg to 120 stopped at 107 deg (R/8) to 114 deg (R/16): the pressure,
   which balances the cap's curvature, pushed the foot out against Young's pull. With ``"clear"``
   the band takes the curvature of the surface particles beside it that have no solid in their
-  support (those just above the band's own layer), and that cap reaches 122-123 deg at R/8;
-  but where the line sits on a wire's edge those particles are the neck below it, and a
-  pendant drop then falls whole, 25 % light: opt-in.
+  support (those just above the band's own layer), and that cap reaches 122-123 deg at R/8.
+  Where the solid turns within the support (an edge: the spread of Gibbs's angles above
+  :data:`EDGE_SPREAD`) the default's is kept: there those particles are the neck below a
+  wire's edge, and with them a pendant drop fell whole, 25 % light.
 - Edges (Gibbs's criterion, Gibbs 1878; Oliver, Huh & Mason 1977): where the solid's
   surface turns within the support, e.g. a wire's end face meeting its side, the line's
   angle is measured against every outward normal of the solid's surface there (the solid's
@@ -65,6 +66,11 @@ from .free_surface import SelectionArrays, colour_pair_weights
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import Phase
+
+
+# the spread of cos(theta) over the solid's normals in a band particle's support above which the
+# solid turns there (an edge) for band_curvature = "clear"
+EDGE_SPREAD = 0.1
 
 
 def unit(v: torch.Tensor) -> torch.Tensor:
@@ -203,6 +209,8 @@ class ContactAngle:
             hi = torch.maximum(torch.where(has, c_hi, cos_d), cos_d)
             self.spread = torch.where(has, hi - lo, torch.zeros_like(lo))
             cos_d = torch.clamp(torch.full_like(cos_d, self.cos), lo, hi)
+            if self.clear:  # at an edge (the solid's normals disagree) the band keeps the default's curvature
+                k_t = torch.where(self.spread > EDGE_SPREAD, k_d, k_t)
         n_rows = rows.shape[0]
         # the surface's curvature and normal beside the band
         self.k_band = torch.zeros(n_rows, dtype=Wk.dtype, device=Wk.device).index_copy_(0, sub, k_t * (state.dim - 1))
