@@ -700,7 +700,7 @@ def split_operator(th, state: ParticleState):
     if th.window <= 0 or op.at is not None or (comm is not None and comm.size > 1) or not op.n_static:
         op.split = None
         return
-    prev = op.split  # (a split of this G's structure: made at an earlier build of the same selection's G)
+    prev = op.split  # (a split of this operator's G: its structure is the same, its values of an earlier build)
     if fast is not None and fast.shape[0] == state.n:  # a restart: the rows as the run had them
         fast = fast.index_select(0, op.rows)
     else:

@@ -183,13 +183,14 @@ class ContactAngle:
         # band's first layer, the 2-D caps of 90 and 120 deg settled 4.5 and 8.5 deg low.)
         up = -dot(dxp, self.n_w.unsqueeze(1))  # (x_j - x_i) . n_w
         z_d = (up * beside).sum(1) / wsum
-        k_d = (gather_nb(kappa, nb) * beside).sum(1) / wsum / (state.dim - 1)
+        kappa_nb = gather_nb(kappa, nb)
+        k_d = (kappa_nb * beside).sum(1) / wsum / (state.dim - 1)
         k_t = k_d  # the curvature the band's tension takes
         if self.clear:  # from the surface beside with no solid in its support, where there is some
             near = self.bufs.whole("near", surface, rows, torch.zeros_like(self.band).index_copy_(0, sub, self.near_c))
             far = gather_nb(surface & ~near, nb).to(Wk.dtype) * Wk
             fsum = far.sum(1)
-            k_t = torch.where(fsum > 0, (gather_nb(kappa, nb) * far).sum(1) / fsum.clamp_min(1e-300) / (state.dim - 1), k_d)
+            k_t = torch.where(fsum > 0, (kappa_nb * far).sum(1) / fsum.clamp_min(1e-300) / (state.dim - 1), k_d)
         cos_d = dot(n_d, self.n_w) - k_d * z_d
         if self.S is not None:
             ns_nb, ns_ok = self.solid_normals(state)

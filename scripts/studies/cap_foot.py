@@ -74,7 +74,7 @@ def main():
         p, speed = sim.fluid.eos(s.rho[fl]), s.v[fl].norm(dim=1)
         surf = sim.surface_model
         kappa = surf.kappa[fl]  # the surface force's curvature (0 off the surface)
-        band = torch.zeros(s.n, dtype=torch.bool).index_copy_(0, surf.rows_f, wet.band)[fl]
+        band = torch.zeros(s.n, dtype=torch.bool, device=s.x.device).index_copy_(0, surf.rows_f, wet.band)[fl]
         fit = contact_angle(s, scene.dx)
     print(f"the fitted sphere's 2/R: {2.0 / fit['R']:.0f} 1/m")
     print("| layer from the plate | largest distance from the axis, dx | pressure, mean Pa | speed, mean mm/s "
