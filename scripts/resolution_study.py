@@ -252,6 +252,20 @@ def plot(rows: list[dict], png: Path, title: str):
     print(f"wrote {png}")
 
 
+def recorded_rows(paths: list[Path], t_end: float, case: str) -> dict:
+    """Rows of finished runs from ``--json`` files, by dx (mm): for rungs whose run folders are
+    elsewhere (a fine rung is hours of runs); a file for another case or window is refused."""
+    out = {}
+    for p in paths:
+        d = json.loads(Path(p).read_text())
+        if Path(d["case"]).name != Path(case).name or abs(d["t_end_s"] - t_end) > 1e-9 * t_end:
+            raise SystemExit(f"--rows {p}: rows of {d['case']} over 0 .. {d['t_end_s']} s, not of {case} "
+                             f"over 0 .. {t_end:g} s")
+        for r in d["rows"]:
+            out[round(r["dx_mm"], 6)] = r
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("case")
@@ -265,6 +279,9 @@ def main():
     ap.add_argument("--read", action="store_true", help="only tabulate the runs there are")
     ap.add_argument("--plot", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--rows", type=Path, nargs="+", default=[],
+                    help="rows of earlier runs (a --json file) for the resolutions whose run folder is not "
+                         "under --out (a run there takes precedence); tabulated and plotted with the others")
     a = ap.parse_args()
     if any(dx <= 0 for dx in a.dx) or a.t_end <= 0 or a.jobs < 1:
         ap.error("--dx values, --t-end and --jobs must be positive")
@@ -272,11 +289,14 @@ def main():
     if not a.read:
         run_all(a, out)
     rows, missing = [], []
+    earlier = recorded_rows(a.rows, a.t_end, a.case)
     for dx in sorted(a.dx, reverse=True):
         d = run_dir(out, dx)
         t = reached(d)
         if t >= a.t_end * (1 - 1e-9) and (d / "summary.json").exists():
             rows.append(analyse(d, dx))
+        elif round(dx, 6) in earlier:
+            rows.append(earlier[round(dx, 6)])
         else:
             missing.append(f"dx = {dx:g} mm: reached t = {t:.4f} of {a.t_end:g} s")
     print(f"# {a.case}, 0 .. {a.t_end:g} s, {len(rows)} resolutions finished")
