@@ -246,7 +246,11 @@ def plot(rows: list[dict], png: Path, title: str):
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # ticks at the runs' own times
-    ax.set_xticks(w, [f"{x:.0f}" for x in w])
+    shown = []  # the runs' own times, less those within 25 % of one already labelled
+    for x in sorted(w):
+        if not shown or x > 1.25 * shown[-1]:
+            shown.append(x)
+    ax.set_xticks(shown, [f"{x:.0f}" for x in shown])
     fig.tight_layout()
     fig.savefig(png)
     print(f"wrote {png}")
