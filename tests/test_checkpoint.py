@@ -113,6 +113,27 @@ def test_restart_accepts_a_checkpoint_from_before_a_key_was_added_at_its_default
     assert s["steps"] == 5
 
 
+def test_a_checkpoint_from_before_a_default_changed_is_not_continued_with_the_new_default():
+    """surface.band_curvature came in with 'beside' as its default and turned 'clear' later: a
+    checkpoint written before the key existed ran 'beside', so with the wetting model on its
+    restart under the new default is refused by name, and accepted with 'beside' set; where
+    the key does nothing (no contact angle) its absence is no difference."""
+    def old_checkpoint(cfg):
+        old = ckpt.physics(cfg)
+        del old["surface"]["band_curvature"]
+        return {"config_hash": ckpt.config_hash(old), "physics": old}
+
+    _, cfg = load_case(CASES / "sessile_drop_2d", ["surface.band_curvature=beside"])
+    d = old_checkpoint(cfg)
+    _, now = load_case(CASES / "sessile_drop_2d", [])
+    assert now["surface"]["band_curvature"] == "clear"
+    with pytest.raises(ckpt.CheckpointError, match="surface.band_curvature = beside in the checkpoint, clear now"):
+        ckpt.check_case(d, now, "old.pt")
+    assert ckpt.check_case(d, cfg, "old.pt") == []
+    _, dry = load_case(CASES / "sessile_drop_2d", ["surface.wetting=false"])
+    assert ckpt.check_case(old_checkpoint(dry), dry, "old.pt") == []
+
+
 def _start(args, env=None):
     return subprocess.Popen([sys.executable, "-m", "torchsph", *args], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

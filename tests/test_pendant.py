@@ -102,14 +102,14 @@ def test_pendant_drop_case_errors_name_the_key(over, key):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("liquid,d_wire,extra", [
-    ("water-like", 1.5e-3, ()), ("steel", 1.2e-3, ()),
-    pytest.param("steel", 1.2e-3, ("surface.band_curvature=clear",), id="steel-clear")])  # measured +0.8 %
+    ("water-like", 1.5e-3, ()), ("steel", 1.2e-3, ()),  # measured -1.5 % and +0.8 %
+    pytest.param("steel", 1.2e-3, ("surface.band_curvature=beside",), id="steel-beside")])  # measured -0.3 %
 def test_pendant_drop_falls_at_tate_harkins_brown(liquid, d_wire, extra):
     """Tate's law with the Harkins-Brown factor (slow: ~9 and ~11 min): the drop (R = 1 mm,
     alpha = sigma, dx = 0.125 mm, 60 deg on the wire, gravity ramped as PENDANT_LIQUIDS says)
     necks in the liquid (less than 90 % of it falls) and the falling mass m obeys
-    m g = 2 pi r sigma f(r / V^(1/3)) within 10 % at the load g it falls at (measured -2.2 %
-    and -0.3 %). This holds at these loading rates: over a 0.2 s ramp the water-like drop held
+    m g = 2 pi r sigma f(r / V^(1/3)) within 10 % at the load g it falls at (measured -1.5 %
+    and +0.8 %; with the band curvature 'beside' -2.2 % and -0.3 %). This holds at these loading rates: over a 0.2 s ramp the water-like drop held
     to a 30 % higher load and fell 21.6 % heavy. The 1 and 1.2 mm water-like drops peel off the
     wire's face whole and fall 17-25 % heavy, which this test would reject
     (docs/VERIFICATION.md, section 5.1)."""

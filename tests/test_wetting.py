@@ -51,37 +51,37 @@ def settle_3d(theta, theta0, radius, dx, t_end=0.020, t_from=0.014, extra=()):
         f"scene.radius_m={radius}", f"scene.dx_m={dx}", *extra], t_from, t_end)["angles"]
 
 
-RECEDES_3D = ("measured 107.4 deg at dx = R/8 (stop 30): the 3-D line hardly draws in from its "
-              "105 deg start (receding hysteresis; from 135 deg it settles at 119.2, stop 33); "
-              "114.1 deg at R/12, 114.3 at R/16 (stops 48-49): the shortfall stops shrinking; the band's "
-              "curvature borrowed from the flank holds the foot out (stop 50): surface.band_curvature = "
-              "'clear' reaches the angle (the next test)")
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("theta,theta0,radius", [
-    (60.0, 75.0, 5e-4), (90.0, 75.0, 5e-4),
-    (120.0, 135.0, 5e-4),  # approached from above: the line advances (measured 119.2 deg)
-    pytest.param(120.0, 105.0, 5e-4, marks=pytest.mark.xfail(reason=RECEDES_3D, strict=True))])
-def test_sessile_drop_3d_settles_at_the_contact_angle(theta, theta0, radius):
-    """3-D caps, dx = R/8 (slow: ~5 min each): the mean fitted angle over 14-20 ms within 5 deg
-    of theta_eq (measured: 60 deg 62.1, 90 deg 85.9; 120 deg from 135: 119.2; 120 deg from
-    105, where the line must recede, not yet: RECEDES_3D)."""
-    angles = settle_3d(theta, theta0, radius, radius / 8)
+@pytest.mark.parametrize("theta,theta0,radius,per_dx,extra", [
+    (30.0, 45.0, 1.5e-3, 24, ("scene.plate_width_m=4e-3",)),  # a thin cap: 6 dx high at R/24
+    (60.0, 75.0, 5e-4, 8, ()), (90.0, 75.0, 5e-4, 8, ()),
+    (120.0, 135.0, 5e-4, 8, ()),  # approached from above: the line advances
+    (120.0, 105.0, 5e-4, 8, ())])  # from below: the line recedes
+def test_sessile_drop_3d_settles_at_the_contact_angle(theta, theta0, radius, per_dx, extra):
+    """3-D caps, dx = R/8 (30 deg: R/24; slow: ~5 min each, 30 deg ~14) started 15 deg off: the mean
+    fitted angle over 14-20 ms within 5 deg of theta_eq (measured with the default band
+    curvature, 'clear': 30 deg 34.4, 60 deg 63.2, 90 deg 86.1, 120 deg from 135: 121.0, from
+    105: 123.0)."""
+    angles = settle_3d(theta, theta0, radius, radius / per_dx, extra=extra)
     mean = sum(angles) / len(angles)
     print(f"3-D theta_eq {theta}: from {theta0}, mean {mean:.2f}, samples {[round(a, 1) for a in angles]}")
     assert abs(mean - theta) < 5.0
 
 
+BESIDE_RECEDES = ("measured 107.4 deg at dx = R/8 (stop 30), 114.1 deg at R/12, 114.3 at R/16 (stops 48-49): "
+                  "with the band's tension at the curvature of all the surface beside it, the flank's, "
+                  "the pressure holds the foot out (stop 50): why the default is 'clear'")
+
+
 @pytest.mark.slow
-def test_a_receding_3d_cap_reaches_its_angle_with_the_band_curvature_clear_of_the_solid():
-    """The 3-D cap at 120 deg drawn in from 105 deg (dx = R/8, slow: ~5 min) with the band's tension
-    at the curvature of the surface beside it clear of the solid (surface.band_curvature = 'clear'):
-    the mean fitted angle over 14-20 ms within 5 deg (measured 122-123 deg; with the default, the
-    flank's curvature, 107 deg: RECEDES_3D)."""
-    angles = settle_3d(120.0, 105.0, 5e-4, 5e-4 / 8, extra=["surface.band_curvature=clear"])
+@pytest.mark.xfail(reason=BESIDE_RECEDES, strict=True)
+def test_a_receding_3d_cap_stops_short_with_the_band_curvature_of_all_the_surface_beside_it():
+    """The model before stop 51 (surface.band_curvature = 'beside'), kept as an option: the 3-D cap
+    at 120 deg drawn in from 105 deg (dx = R/8, slow: ~5 min) stops 13 deg short (BESIDE_RECEDES);
+    strict, so a change that makes it reach its angle is noticed."""
+    angles = settle_3d(120.0, 105.0, 5e-4, 5e-4 / 8, extra=["surface.band_curvature=beside"])
     mean = sum(angles) / len(angles)
-    print(f"3-D 120 from 105, band curvature clear: mean {mean:.2f}, samples {[round(a, 1) for a in angles]}")
+    print(f"3-D 120 from 105, band curvature beside: mean {mean:.2f}, samples {[round(a, 1) for a in angles]}")
     assert abs(mean - 120.0) < 5.0
 
 

@@ -82,10 +82,19 @@ STEP_CONTROL = ("numerics.cfl", "numerics.dt_s", "numerics.allow_unstable_dt", "
                 "numerics.migration_slack_over_skin", "numerics.conduction_window", "numerics.conduction_window_below_K")
 
 
+# Keys whose default changed after they were added: a checkpoint from before the key existed
+# ran with the behaviour named here, not with today's default (so a restart of it under the
+# new default is refused, naming the key, rather than continuing with other physics), where
+# the key acts: (that value, whether it acts in the case's section).
+ABSENT_MEANS = {"surface.band_curvature": (  # the default until stop 51; acts with the wetting model
+    "beside", lambda sec: sec.get("contact_angle_deg") is not None and sec.get("wetting", True))}
+
+
 def _changed(old: dict, cfg: dict) -> list[tuple[str, object, object]]:
     """(section.key, checkpoint's value, case's value) for each physics key that differs. A
     key the checkpoint lacks is not a difference when the case has it at its default (a key
-    added by a newer version of the code that keeps the old behaviour by default)."""
+    added by a newer version of the code that keeps the old behaviour by default), or at the
+    value :data:`ABSENT_MEANS` names for it."""
     new, out = physics(cfg), []
     terms = sorted((set(physics_sections(old)) | set(physics_sections(new))) - set(PHYSICS_SECTIONS))
     for sec in PHYSICS_SECTIONS + tuple(terms):
@@ -93,7 +102,10 @@ def _changed(old: dict, cfg: dict) -> list[tuple[str, object, object]]:
         if isinstance(a, dict) and isinstance(b, dict):
             dflt = _defaults(sec, cfg)
             for k in sorted(set(a) | set(b)):
-                if k not in a and k in dflt and dflt[k] == b[k]:
+                legacy = ABSENT_MEANS.get(f"{sec}.{k}")
+                if k not in a and legacy is not None and legacy[1](b):
+                    a = {**a, k: legacy[0]}
+                elif k not in a and k in dflt and dflt[k] == b[k]:
                     continue
                 if a.get(k, "(absent)") != b.get(k, "(absent)"):
                     out.append((f"{sec}.{k}", a.get(k, "(absent)"), b.get(k, "(absent)")))

@@ -195,11 +195,12 @@ SURFACE = {
                              doc="equilibrium contact angle theta_eq between melt and solid or wall "
                                  "(Young's force at the contact line; omit: no wetting model, "
                                  "a melt/solid contact is not a surface)", field="contact_angle"),
-    "band_curvature": Key("str", default="beside", choices=("beside", "clear"),
-                          doc="the curvature the contact band's tension takes: 'beside', the surface "
-                              "particles beside the band; 'clear', those of them with no solid in their "
-                              "support, 'beside' where the solid turns (an edge): a receding 3-D cap then "
-                              "reaches its angle (docs/VERIFICATION.md)",
+    "band_curvature": Key("str", default="clear", choices=("beside", "clear"),
+                          doc="the curvature the contact band's tension takes: 'clear' (the default), "
+                              "the surface particles beside the band with no solid in their support, "
+                              "'beside' where the solid turns (an edge); 'beside', all the surface "
+                              "particles beside the band (before stop 51: a receding 3-D cap stops 6-13 "
+                              "deg short, docs/VERIFICATION.md)",
                           field="band_curvature"),
     "wetting": Key("bool", default=True,
                    doc="false: contact_angle_deg is ignored (the thesis's model, c = 1 in melt and solid), "

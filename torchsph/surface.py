@@ -47,8 +47,8 @@ class SurfaceParams:
     zero_net_force: bool = False  # remove the discrete forces' net resultant (a free body only)
     contact_angle: float | None = None  # theta_eq between melt and solid, deg (None: no wetting model)
     wetting: bool = True  # False: contact_angle ignored
-    band_curvature: str = "beside"  # the contact band's curvature: of the surface beside it, or ("clear") of
-    # those beside particles with no solid in their support
+    band_curvature: str = "clear"  # the contact band's curvature: ("clear") of the surface particles beside
+    # it with no solid in their support, or ("beside") of all of them
 
 
 def gradient_moments(x, f, w, m, rho, rows, nb, kernel: Kernel, h: float, domain: Domain):

@@ -26,15 +26,17 @@ magnitude, so the equilibrium angle does not hang on how the line's length is sh
   beside, a height z above the band particle (exact on a circle or sphere). Without that, the
   angle would be read a few spacings up the surface, and a cap settle steeper than theta_eq
   by about z / R rad.
-- The band's curvature (``surface.band_curvature``): by default the surface particles' beside
-  it. Near a steep foot those are the flank below the bulge, curved less than the cap, and a 3-D
-  cap drawing in from 105 deg to 120 stopped at 107 deg (R/8) to 114 deg (R/16): the pressure,
-  which balances the cap's curvature, pushed the foot out against Young's pull. With ``"clear"``
-  the band takes the curvature of the surface particles beside it that have no solid in their
-  support (those just above the band's own layer), and that cap reaches 122-123 deg at R/8.
-  Where the solid turns within the support (an edge: the spread of Gibbs's angles above
-  :data:`EDGE_SPREAD`) the default's is kept: there those particles are the neck below a
-  wire's edge, and with them a pendant drop fell whole, 25 % light.
+- The band's curvature (``surface.band_curvature``): by default (``"clear"``) the curvature of
+  the surface particles beside the band that have no solid in their support (those just above
+  the band's own layer; where there are none, all the beside particles'). With all the surface
+  particles beside it (``"beside"``, the model before stop 51) a 3-D cap drawing in from 105 deg
+  to 120 stopped at 107 deg (R/8) to 114 deg (R/16): near a steep foot those particles are the
+  flank below the bulge, curved less than the cap, and the pressure, which balances the cap's
+  curvature, pushed the foot out against Young's pull; with ``"clear"`` that cap reaches
+  122-123 deg at R/8. Where the solid turns within the support (an edge: the spread of Gibbs's
+  angles above :data:`EDGE_SPREAD`) all the beside particles' is taken: there the particles
+  clear of the solid are the neck below a wire's edge, and with them a pendant drop fell whole,
+  25 % light.
 - Edges (Gibbs's criterion, Gibbs 1878; Oliver, Huh & Mason 1977): where the solid's
   surface turns within the support, e.g. a wire's end face meeting its side, the line's
   angle is measured against every outward normal of the solid's surface there (the solid's

@@ -92,7 +92,7 @@ def main():
     ap.add_argument("--material", choices=sorted(MATERIALS), default="water-like")
     ap.add_argument("--dx", type=float, nargs="*", default=[1.0e-4])
     ap.add_argument("--wire", type=float, nargs="*", default=None, help="wire diameters, m (default: 1 mm; "
-                    "steel: 1.2 mm, Table 2; --tate: 1 and 1.5 mm)")
+                    "steel: 1.2 mm, Table 2; water-like with --tate: 1 and 1.5 mm)")
     ap.add_argument("--tate", action="store_true", help="only measure q at alpha = sigma (no calibration)")
     ap.add_argument("--law", choices=("harkins-brown", "tate"), default="harkins-brown",
                     help="calibrate against Tate's law with the Harkins-Brown factor (the falling mass), or "
@@ -103,7 +103,7 @@ def main():
     args = ap.parse_args()
     mat = MATERIALS[args.material]
     mat = {**mat, "over": mat["over"] + args.set}
-    wires = args.wire or ([1.0e-3, 1.5e-3] if args.tate else [1.2e-3] if args.material == "steel" else [1.0e-3])
+    wires = args.wire or ([1.2e-3] if args.material == "steel" else [1.0e-3, 1.5e-3] if args.tate else [1.0e-3])
     print(f"{args.material}: sigma = {mat['sigma']} N/m, rho = {mat['rho']} kg/m^3; gravity ramped "
           f"(cases/pendant_drop; overrides {' '.join(mat['over']) or 'none'})")
     print(HEADER)
