@@ -109,8 +109,9 @@ def test_pendant_drop_falls_at_tate_harkins_brown(liquid, d_wire, extra):
     alpha = sigma, dx = 0.125 mm, 60 deg on the wire, gravity ramped as PENDANT_LIQUIDS says)
     necks in the liquid (less than 90 % of it falls) and the falling mass m obeys
     m g = 2 pi r sigma f(r / V^(1/3)) within 10 % at the load g it falls at (measured -1.5 %
-    and +0.8 %; with the band curvature 'beside' -2.2 % and -0.3 %). This holds at these loading rates: over a 0.2 s ramp the water-like drop held
-    to a 30 % higher load and fell 21.6 % heavy. The 1 and 1.2 mm water-like drops peel off the
+    and +0.8 %; with the band curvature 'beside' -2.2 % and -0.3 %). This holds at these
+    loading rates: over a 0.2 s ramp the water-like drop held to a 30 % higher load and fell
+    21.6 % heavy. The 1 and 1.2 mm water-like drops peel off the
     wire's face whole and fall 17-25 % heavy, which this test would reject
     (docs/VERIFICATION.md, section 5.1)."""
     from torchsph.caps import PENDANT_LIQUIDS, detach
