@@ -22,6 +22,7 @@ from mpi4py import MPI
 
 from torchsph.checkpoint import FORMAT as ckpt_format
 from torchsph.checkpoint import CheckpointError, check_case, read, recorded_physics, write
+from torchsph.particles import LAZY_CACHES
 from torchsph.runner import SerialRun, make_simulation, run_case
 from torchsph.state import ParticleState
 
@@ -63,14 +64,14 @@ def save_global(sim, comm, path: Path, chash: str, extra: dict, phys: dict | Non
     write(d, path)
 
 
-def global_from_single(d: dict, cfg: dict, path: str, recorded: dict | None = None) -> dict:
+def global_from_single(d: dict, cfg: dict, path: str, recorded: dict | None = None, branch: bool = False) -> dict:
     """A one-process checkpoint as a global one: restored into a one-process simulation of
     the same case (every rank alike), its per-particle arrays and totals taken from there.
     A run started in one process continues on any number of ranks."""
     from torchsph import checkpoint as ckpt
 
     _, one = make_simulation(cfg)
-    extra = ckpt.restore(one, d, cfg, path, recorded)
+    extra = ckpt.restore(one, d, cfg, path, recorded, branch)
     for name, obj in (("feeder", one.feeder), ("escape", one.escape)):
         if obj is not None and name in extra:
             obj.load_state_dict(extra[name])
@@ -88,15 +89,17 @@ def global_from_single(d: dict, cfg: dict, path: str, recorded: dict | None = No
     return g
 
 
-def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | None = None):
+def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | None = None, branch: bool = False):
     if d.get("format") == ckpt_format:  # written by one process
-        d = global_from_single(d, cfg, path, recorded)
+        d = global_from_single(d, cfg, path, recorded, branch)
     if d.get("format") != FORMAT:
         raise CheckpointError(f"--restart {path}: not a torchsph checkpoint (format {d.get('format')!r})")
-    changes = check_case(d, cfg, path, recorded)
+    changes = check_case(d, cfg, path, recorded, branch)
     dev, dt = sim.state.device, sim.state.dtype
     comm.bounds = None  # equal shares of the checkpoint's particles on this run's ranks
-    local = comm.distribute({k: v for k, v in d["arrays"].items()}, first=True)
+    # (a branch with other physics makes the caches that follow from it anew)
+    local = comm.distribute({k: v for k, v in d["arrays"].items()
+                             if not (branch and changes and k in LAZY_CACHES)}, first=True)
     local = {k: v.to(dev) for k, v in local.items()}
     sim.rearm(local, table=lambda: comm.table_at_reference(sim))  # the table as the last rebuild made it
     comm.mark(sim)
@@ -145,8 +148,8 @@ class SlabRun(SerialRun):
     def recorded(self, restart):
         return self.comm.c.bcast(recorded_physics(restart) if self.root and restart is not None else None, root=0)
 
-    def restore(self, sim, path, cfg, recorded) -> dict:
-        return restore_global(sim, self.comm, read(path), cfg, str(path), recorded)
+    def restore(self, sim, path, cfg, recorded, branch=False) -> dict:
+        return restore_global(sim, self.comm, read(path), cfg, str(path), recorded, branch)
 
     def save(self, sim, path, chash, extra, phys):
         save_global(sim, self.comm, path, chash, extra, phys=phys)

@@ -35,8 +35,14 @@ def parse_args(argv=None):
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     ap.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                     help="write OUT/checkpoint.pt every N steps (always at the end and on Ctrl-C)")
-    ap.add_argument("--restart", type=Path, default=None, metavar="CHECKPOINT",
-                    help="continue a run from its checkpoint (same case; [run] may differ)")
+    go_on = ap.add_mutually_exclusive_group()
+    go_on.add_argument("--restart", type=Path, default=None, metavar="CHECKPOINT",
+                       help="continue a run from its checkpoint (same case; [run] may differ)")
+    go_on.add_argument("--branch", type=Path, default=None, metavar="CHECKPOINT",
+                       help="go on from a checkpoint's state with this case's physics, which may differ from "
+                            "the checkpoint's in any key but those that build the scene (a what-if from a "
+                            "developed state, e.g. --set surface.marangoni=false); the changed keys are printed "
+                            "and recorded in summary.json")
     ap.add_argument("--threads", type=int, default=None, metavar="N",
                     help="torch's CPU threads per process (default: the cores free when the run starts, "
                          "shared among the MPI ranks on this machine; OMP_NUM_THREADS, where set, decides)")
@@ -111,11 +117,12 @@ def main(argv=None) -> int:
         if args.checkpoint_every is not None and args.checkpoint_every <= 0:
             raise CaseError(f"--checkpoint-every {args.checkpoint_every}: must be > 0")
         from . import threads
+        restart = args.restart if args.branch is None else args.branch
         kw = dict(t_end=args.t_end, steps=args.steps, device=args.device, dtype=args.dtype,
-                  progress=not args.quiet, checkpoint_every=args.checkpoint_every, restart=args.restart,
-                  estimate=args.estimate, threads=threads.apply(args.threads))
+                  progress=not args.quiet, checkpoint_every=args.checkpoint_every, restart=restart,
+                  estimate=args.estimate, threads=threads.apply(args.threads), branch=args.branch is not None)
         runner = run_case
-        if mpi_size() > 1 or _global_checkpoint(args.restart):
+        if mpi_size() > 1 or _global_checkpoint(restart):
             from parallel.run import run_case_mpi as runner  # launched by mpirun / mpiexec
         if not args.estimate and not args.quiet:
             # the cost before the run: a probe of a throw-away copy at the step the run will

@@ -23,6 +23,7 @@ import torch
 
 from .io import written
 from .neighbors import NeighbourTable
+from .particles import LAZY_CACHES
 from .state import ParticleState
 from .terms import available as available_terms
 
@@ -124,24 +125,43 @@ def differences(old: dict, cfg: dict) -> list[str]:
     return [_say(*c) for c in _changed(old, cfg)]
 
 
-def check_case(d: dict, cfg: dict, path: str, recorded: dict | None = None) -> list[str]:
+# What a branch (``--branch``: a checkpoint's state carried on with other physics) may not
+# change: the keys that build the particle set, their kinematics, or the neighbour table's
+# reach. The beams' keys of [scene] (source_*) may change.
+BRANCH_FIXED = ("scene.type", "scene.dim", "scene.dx_m", "numerics.kernel", "numerics.h_over_dx",
+                "numerics.skin_over_dx")
+
+
+def _fixed_on_branch(key: str) -> bool:
+    return key in BRANCH_FIXED or (key.startswith("scene.") and not key.startswith("scene.source_"))
+
+
+def check_case(d: dict, cfg: dict, path: str, recorded: dict | None = None, branch: bool = False) -> list[str]:
     """Refuse a checkpoint written for other physics, naming what differs. ``recorded``: the
     physics of the run that wrote it, for checkpoints that do not carry their own (its
     ``config.json``); it is trusted only if it hashes to the checkpoint's hash. Changes of
-    the :data:`STEP_CONTROL` keys are accepted; returns them (one line each)."""
-    allowed = "only [run] and " + ", ".join(STEP_CONTROL) + " may change on a restart"
+    the :data:`STEP_CONTROL` keys are accepted; returns them (one line each). ``branch``: any
+    physics key may change but those that build the scene (:data:`BRANCH_FIXED`, and [scene]
+    but for its source_* keys); returns every change."""
+    flag = "--branch" if branch else "--restart"
+    allowed = ("a branch may change any physics key but [scene]'s (source_* excepted), "
+               + ", ".join(k for k in BRANCH_FIXED if not k.startswith("scene.")) if branch else
+               "only [run] and " + ", ".join(STEP_CONTROL) + " may change on a restart (--branch: other physics "
+               "from this state)")
     if d.get("config_hash") == config_hash(cfg):
         return []
     old = d.get("physics") or recorded
     if old is not None and config_hash(old) == d.get("config_hash"):
         diff = _changed(old, cfg)
-        bad = [_say(*c) for c in diff if c[0] not in STEP_CONTROL]
+        bad = [_say(*c) for c in diff if (_fixed_on_branch(c[0]) or c[0].startswith("[scene"))
+               or (not branch and c[0] not in STEP_CONTROL)]
         if bad:
-            raise CheckpointError(f"--restart {path}: written for a different case: " + "; ".join(bad[:6])
+            raise CheckpointError(f"{flag} {path}: written for a different case: " + "; ".join(bad[:6])
                                   + ("; ..." if len(bad) > 6 else "") + "; " + allowed)
         return [_say(*c) for c in diff]
-    raise CheckpointError(f"--restart {path}: written for a different case (physics hash "
-                          f"{d.get('config_hash')} vs {config_hash(cfg)}); {allowed}")
+    raise CheckpointError(f"{flag} {path}: written for a different case (physics hash "
+                          f"{d.get('config_hash')} vs {config_hash(cfg)}, and no record of its physics to compare "
+                          f"key by key); {allowed}")
 
 
 def recorded_physics(restart: str | Path) -> dict | None:
@@ -287,10 +307,13 @@ def load(path: str | Path) -> dict:
     return d
 
 
-def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", recorded: dict | None = None):
+def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", recorded: dict | None = None,
+            branch: bool = False):
     """Put a loaded checkpoint into a simulation built from the same case (``cfg``: refused,
-    naming what differs, if the checkpoint was written for other physics; see :func:`check_case`)."""
-    changes = check_case(d, cfg, path, recorded) if cfg is not None else []
+    naming what differs, if the checkpoint was written for other physics; see :func:`check_case`).
+    ``branch``: the case's physics may differ (the caches that follow from the physics are
+    made anew, from the state)."""
+    changes = check_case(d, cfg, path, recorded, branch) if cfg is not None else []
     dev, dt = sim.state.device, sim.state.dtype
     st = d["state"]
     if st["x"].shape[1] != sim.state.dim:
@@ -351,6 +374,8 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     if sf is not None and "surface" in d:
         caches.update({f"sf.{k}": to(v) for k, v in d["surface"].items() if v is not None})
     caches.update({k: to(v) for k, v in d.get("terms", {}).items() if v is not None})
+    if branch and changes:  # made again with the branch's physics (as after a rebuild)
+        caches = {k: v for k, v in caches.items() if k not in LAZY_CACHES}
     # pair subsets anew (a function of the table and the phases), the caches as they were
     sim.rearm(caches)
     if th is not None and "thermal" in d:

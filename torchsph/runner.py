@@ -103,12 +103,13 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
     return scene, sim
 
 
-def resume(sim: Simulation, path, cfg: dict, recorded: dict | None = None) -> dict:
+def resume(sim: Simulation, path, cfg: dict, recorded: dict | None = None, branch: bool = False) -> dict:
     """Put a checkpoint into ``sim`` (state, clock, neighbour list, caches) and into the
-    scene's wire feeder and escape box; returns the checkpoint's extras."""
+    scene's wire feeder and escape box; returns the checkpoint's extras. ``branch``: the
+    case's physics may differ from the checkpoint's (:func:`torchsph.checkpoint.check_case`)."""
     from . import checkpoint as ckpt
 
-    extra = ckpt.restore(sim, ckpt.load(path), cfg, str(path), recorded)
+    extra = ckpt.restore(sim, ckpt.load(path), cfg, str(path), recorded, branch)
     if sim.feeder is not None and "feeder" in extra:
         sim.feeder.load_state_dict(extra["feeder"])
     if sim.escape is not None and "escape" in extra:
@@ -258,8 +259,8 @@ class SerialRun:
         from . import checkpoint as ckpt
         return ckpt.recorded_physics(restart) if restart is not None else None
 
-    def restore(self, sim, path, cfg, recorded) -> dict:
-        return resume(sim, path, cfg, recorded)
+    def restore(self, sim, path, cfg, recorded, branch=False) -> dict:
+        return resume(sim, path, cfg, recorded, branch)
 
     def save(self, sim, path, chash, extra, phys):
         from . import checkpoint as ckpt
@@ -301,7 +302,7 @@ STEP_MODE = torch.inference_mode  # a run steps without autograd: each operation
 def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, device=None,
              dtype=None, progress=True, checkpoint_every: int | None = None,
              restart: Path | None = None, procs=None, estimate: bool = False,
-             announce: bool = True, threads: str | None = None) -> dict | None:
+             announce: bool = True, threads: str | None = None, branch: bool = False) -> dict | None:
     """Run a case with snapshots every output interval; returns the summary dict (on the
     root process; None on the others).
 
@@ -318,7 +319,9 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     place afterwards does so in that mode too).
     ``restart`` continues from a checkpoint of the same case; ``steps`` then counts the
     steps still to run, ``t_end`` stays the end time; the bar and the wall time go on
-    from the checkpoint's."""
+    from the checkpoint's. ``branch``: ``restart`` is a checkpoint of the same scene run with
+    other physics (a what-if from a developed state: the changed keys are printed and go to
+    ``summary.json``)."""
     from . import checkpoint as ckpt
 
     procs = procs if procs is not None else SerialRun()
@@ -351,11 +354,14 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     ck_path = out_dir / "checkpoint.pt"
     resumed = {}
     if restart is not None:
-        resumed = procs.restore(sim, restart, cfg, recorded)
+        resumed = procs.restore(sim, restart, cfg, recorded, branch)
+        if branch:
+            resumed["branch"] = {"from": str(restart), "changes": resumed.pop("step_control_changes", [])}
         if root and not estimate:
             sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
-            for c in resumed.get("step_control_changes", []):
-                print(f"torchsph: restart from {restart}: {c}", file=sys.stderr, flush=True)
+            for c in resumed.get("step_control_changes", resumed.get("branch", {}).get("changes", [])):
+                print(f"torchsph: {'branch' if branch else 'restart'} from {restart}: {c}", file=sys.stderr,
+                      flush=True)
         snaps = [tuple(x) for x in resumed.get("snaps", [])]
     deposit = list(resumed.get("deposit", []))  # deposition measures at each snapshot
     wall_before = float(resumed.get("wall_s", 0.0))  # the earlier legs' wall time
@@ -511,7 +517,9 @@ def _finish(procs, sim, cfg, case_path, out_dir, stats, snaps, setup_s, t0, wall
         "neighbour_builds": sim.nl.n_builds, "energy": energy, "physics_plan": physics_plan(sim),
         "snapshots": len(snaps), "torch": torch.__version__, **extra,
     }
-    if restart is not None:
+    if "branch" in resumed:
+        summary["branch"] = resumed["branch"]
+    elif restart is not None:
         summary["restart_step_control_changes"] = resumed.get("step_control_changes", [])
     sio.write_json(out_dir / "summary.json", summary)
     return summary
