@@ -14,7 +14,9 @@ up the legs' wall time. --jobs runs that many resolutions at once (one thread ea
 
 Then one table: dx, particles, steps, wall s, particle-steps/s; the settled bead's added
 cross-section by mass (the bins behind the wire whose area changed by at most 5 % over the
-last 50 ms; where none has, the mean of the window's bins, as the settled count shows) and its error against the nominal pi d^2 V_wire / (4 V_sub); the wire fed over the
+last 50 ms; where none has, the mean of the window's bins, as the settled count shows), the
+bins' spread along the track ((max - min) / mean: a steady bead is the same along x; a row above
+50 % is flagged below the table, with its bins) and its error against the nominal pi d^2 V_wire / (4 V_sub); the wire fed over the
 window against the nominal feed (the feed waits on contact) and the bead's error against the
 area of the wire actually fed (so that a wait is not counted as a resolution error); from the last
 snapshot the bead's mean width, height, penetration and toe angle over the solidified range
@@ -50,6 +52,7 @@ COLUMNS = [  # key, header, format, extrapolated
     ("dx_mm", "dx mm", "{:.3f}", False), ("particles", "particles", "{:,}", False), ("steps", "steps", "{:,}", False),
     ("wall_s", "wall s", "{:.0f}", False), ("psteps", "particle-steps/s", "{:.3g}", False),
     ("area_mm2", "bead area mm2", "{:.3f}", True), ("settled_bins", "bins settled", "{}", False),
+    ("bins_spread", "bins spread", "{:.0%}", False),
     ("area_error", "error vs nominal", "{:+.1%}", False),
     ("fed_share", "fed / nominal feed", "{:.1%}", False), ("area_error_fed", "error vs fed", "{:+.1%}", False),
     ("width_mm", "width mm", "{:.3f}", True), ("height_mm", "height mm", "{:.3f}", True),
@@ -147,6 +150,10 @@ def analyse(d: Path, dx_mm: float) -> dict:
     window = [b["area_m2"] for b in settle["bins"]]
     row["area_mm2"] = (settle["settled_m2"] if settle["settled_bins"] else
                        (sum(window) / len(window) if window else float("nan"))) * 1e6
+    # a steady bead is the same along x: (max - min) / mean of the window's bins (a bin may
+    # stop changing while the bead is a ramp, e.g. melt held on the wire and dropped in turns)
+    row["bins_mm2"] = [a * 1e6 for a in window]
+    row["bins_spread"] = spread(row["bins_mm2"])
     row["psteps"] = row["particles"] * row["steps"] / row["wall_s"] if row["wall_s"] > 0 else float("nan")
     row["area_error"] = row["area_mm2"] / row["nominal_mm2"] - 1.0
     # the wire actually fed against the nominal feed over the window (the feed waits on
@@ -161,8 +168,13 @@ def analyse(d: Path, dx_mm: float) -> dict:
     return row
 
 
+STEADY_SPREAD = 0.5  # bins spread above this: the window's mean is not a steady bead's
+
+
 def fmt(key: str, v) -> str:
     spec = next(f for k, _, f, _ in COLUMNS if k == key)
+    if v is None:
+        return "–"  # (a row recorded before the column existed)
     if isinstance(v, float) and math.isnan(v):
         return "nan"
     return spec.format(v)
@@ -171,7 +183,7 @@ def fmt(key: str, v) -> str:
 def table(rows: list[dict]) -> str:
     lines = ["| " + " | ".join(h for _, h, _, _ in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for r in rows:
-        lines.append("| " + " | ".join(fmt(k, r[k]) for k, _, _, _ in COLUMNS) + " |")
+        lines.append("| " + " | ".join(fmt(k, r.get(k)) for k, _, _, _ in COLUMNS) + " |")
     if rows:
         h = [r["dx_mm"] for r in rows]
         ext = {k: richardson(h, [r[k] for r in rows]) for k, _, _, e in COLUMNS if e}
@@ -204,7 +216,23 @@ def table(rows: list[dict]) -> str:
                 cells.append("nan" if math.isnan(f0) or f0 == 0 else f"{r[k] / f0 - 1:+.1%}")
             lines.append(f"| {r['dx_mm']:.3f} | " + " | ".join(cells) + " |")
         lines += ["", convergence(rows, ext, keys)]
+    lines += ["\n" + n for n in map(unsteady, rows) if n]
     return "\n".join(lines)
+
+
+def spread(bins_mm2: list[float]) -> float:
+    """(max - min) / mean of a window's bins (NaN for none)."""
+    mean = sum(bins_mm2) / len(bins_mm2) if bins_mm2 else 0.0
+    return (max(bins_mm2) - min(bins_mm2)) / mean if mean > 0 else float("nan")
+
+
+def unsteady(row: dict) -> str | None:
+    """The note for a row whose bins spread more than :data:`STEADY_SPREAD` (None if they do not)."""
+    if not (row.get("bins_spread") or 0.0) > STEADY_SPREAD:
+        return None
+    return (f"Not a steady bead at dx = {row['dx_mm']:g} mm: the window's bins hold "
+            + ", ".join(f"{a:.2f}" for a in row["bins_mm2"]) + f" mm2 (spread {row['bins_spread']:.0%} > "
+            f"{STEADY_SPREAD:.0%}): its mean is not a settled cross-section.")
 
 
 def convergence(rows: list[dict], ext: dict, keys: list[str], tol: float = 0.1) -> str:
