@@ -1,6 +1,7 @@
 """MPI domain decomposition with real ranks (mpiexec from the mpich wheel): decomposed runs
 equal the single-process run, migration conserves particles and mass, checkpoints restart
 on other rank counts, and an exception on one rank ends the whole run."""
+import json
 import os
 import shutil
 import subprocess
@@ -173,6 +174,33 @@ def test_a_one_process_checkpoint_restarts_on_two_ranks(tmp_path):
     assert np.array_equal(s["id"], full["id"])
     for k in ("position", "velocity", "density", "temperature"):
         assert rel(s[k], full[k]) < 1e-10, k
+
+
+def test_a_branch_on_two_ranks_equals_the_branch_in_one_process(tmp_path):
+    """``--branch`` (a checkpoint's state with other physics: the beams at 300 W, no
+    Marangoni force) from a one-process checkpoint of the deposition scene, on 2 ranks and in
+    one process: the same state after 50 steps, and the same changes recorded."""
+    case, ov, _ = DEPOSITION
+    sets = [a for o in ov for a in ("--set", o)]
+    base = [sys.executable, "-m", "torchsph", str(case), "--quiet"] + sets
+    r = subprocess.run(base + ["--steps", "50", "--out", str(tmp_path / "a")], cwd=ROOT, env=ENV,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    what = ["--branch", str(tmp_path / "a" / "checkpoint.pt"), "--steps", "50", "--set", "scene.source_power_W=300.0",
+            "--set", "surface.marangoni=false"]
+    r1 = subprocess.run(base + what + ["--out", str(tmp_path / "one")], cwd=ROOT, env=ENV, capture_output=True,
+                        text=True, timeout=600)
+    assert r1.returncode == 0, r1.stderr[-3000:]
+    r2 = mpirun(2, base[1:] + what + ["--out", str(tmp_path / "two")])
+    assert r2.returncode == 0, r2.stderr[-3000:]
+    one = read_snapshot(sorted((tmp_path / "one").glob("snap_*.h5"))[-1])
+    two = read_snapshot(sorted((tmp_path / "two").glob("snap_*.h5"))[-1])
+    assert one["step"] == two["step"] == 100 and np.array_equal(one["id"], two["id"])
+    for k in ("position", "velocity", "density", "temperature"):
+        assert rel(two[k], one[k]) < 1e-10, k
+    b1, b2 = (json.loads((tmp_path / d / "summary.json").read_text())["branch"] for d in ("one", "two"))
+    assert b1 == b2 and "surface.marangoni = True in the checkpoint, False now" in b1["changes"]
+    assert "scene.source_power_W = 350.0 in the checkpoint, 300.0 now" in b1["changes"]
 
 
 def test_an_exception_on_one_rank_ends_the_run(tmp_path):
