@@ -21,8 +21,7 @@ import torch
 from mpi4py import MPI
 
 from torchsph.checkpoint import FORMAT as ckpt_format
-from torchsph.checkpoint import CheckpointError, check_case, read, recorded_physics, write
-from torchsph.particles import LAZY_CACHES
+from torchsph.checkpoint import CheckpointError, check_case, fresh_caches, read, recorded_physics, write
 from torchsph.runner import SerialRun, make_simulation, run_case
 from torchsph.state import ParticleState
 
@@ -97,9 +96,7 @@ def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | No
     changes = check_case(d, cfg, path, recorded, branch)
     dev, dt = sim.state.device, sim.state.dtype
     comm.bounds = None  # equal shares of the checkpoint's particles on this run's ranks
-    # (a branch with other physics makes the caches that follow from it anew)
-    local = comm.distribute({k: v for k, v in d["arrays"].items()
-                             if not (branch and changes and k in LAZY_CACHES)}, first=True)
+    local = comm.distribute(fresh_caches(dict(d["arrays"]), branch, changes), first=True)
     local = {k: v.to(dev) for k, v in local.items()}
     sim.rearm(local, table=lambda: comm.table_at_reference(sim))  # the table as the last rebuild made it
     comm.mark(sim)

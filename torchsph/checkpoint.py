@@ -133,7 +133,14 @@ BRANCH_FIXED = ("scene.type", "scene.dim", "scene.dx_m", "numerics.kernel", "num
 
 
 def _fixed_on_branch(key: str) -> bool:
-    return key in BRANCH_FIXED or (key.startswith("scene.") and not key.startswith("scene.source_"))
+    return key in BRANCH_FIXED or key.startswith("[scene") or (key.startswith("scene.")
+                                                                and not key.startswith("scene.source_"))
+
+
+def fresh_caches(arrays: dict, branch: bool, changes: list) -> dict:
+    """``arrays`` less the caches that follow from the physics (:data:`LAZY_CACHES`) where a
+    branch changed it: they are made again from the state, with the branch's physics."""
+    return {k: v for k, v in arrays.items() if k not in LAZY_CACHES} if branch and changes else arrays
 
 
 def check_case(d: dict, cfg: dict, path: str, recorded: dict | None = None, branch: bool = False) -> list[str]:
@@ -153,8 +160,7 @@ def check_case(d: dict, cfg: dict, path: str, recorded: dict | None = None, bran
     old = d.get("physics") or recorded
     if old is not None and config_hash(old) == d.get("config_hash"):
         diff = _changed(old, cfg)
-        bad = [_say(*c) for c in diff if (_fixed_on_branch(c[0]) or c[0].startswith("[scene"))
-               or (not branch and c[0] not in STEP_CONTROL)]
+        bad = [_say(*c) for c in diff if (_fixed_on_branch(c[0]) if branch else c[0] not in STEP_CONTROL)]
         if bad:
             raise CheckpointError(f"{flag} {path}: written for a different case: " + "; ".join(bad[:6])
                                   + ("; ..." if len(bad) > 6 else "") + "; " + allowed)
@@ -374,10 +380,8 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     if sf is not None and "surface" in d:
         caches.update({f"sf.{k}": to(v) for k, v in d["surface"].items() if v is not None})
     caches.update({k: to(v) for k, v in d.get("terms", {}).items() if v is not None})
-    if branch and changes:  # made again with the branch's physics (as after a rebuild)
-        caches = {k: v for k, v in caches.items() if k not in LAZY_CACHES}
     # pair subsets anew (a function of the table and the phases), the caches as they were
-    sim.rearm(caches)
+    sim.rearm(fresh_caches(caches, branch, changes))
     if th is not None and "thermal" in d:
         restore_window(th, d["thermal"], to)
     torch.set_rng_state(d["rng"])

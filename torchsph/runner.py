@@ -355,11 +355,12 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     resumed = {}
     if restart is not None:
         resumed = procs.restore(sim, restart, cfg, recorded, branch)
+        changes = resumed["step_control_changes"]  # (a branch's: every physics change)
         if branch:
-            resumed["branch"] = {"from": str(restart), "changes": resumed.pop("step_control_changes", [])}
+            resumed["branch"] = {"from": str(restart), "changes": resumed.pop("step_control_changes")}
         if root and not estimate:
             sio.write_json(out_dir / "config.json", {"case": str(case_path), **cfg})
-            for c in resumed.get("step_control_changes", resumed.get("branch", {}).get("changes", [])):
+            for c in changes:
                 print(f"torchsph: {'branch' if branch else 'restart'} from {restart}: {c}", file=sys.stderr,
                       flush=True)
         snaps = [tuple(x) for x in resumed.get("snaps", [])]
