@@ -42,6 +42,11 @@ class SerialComm:
     def sum(self, vals: list[float]) -> list[float]:
         return vals
 
+    def sum_owned(self, rows: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+        """The sum over the first axis of ``values`` (one row per entry of ``rows``, local row
+        numbers) over the particles each process owns, summed over processes."""
+        return values.sum(0)
+
     def union_keys(self, keys) -> list[str]:
         """The names any process holds, sorted (each process books only what happened on its
         particles: a fed layer or an escape may create a name on some processes only)."""
@@ -71,6 +76,10 @@ class SerialComm:
 
     def begin_step(self, sim):
         """Before a step: migration and new ghosts when the last step rebuilt the pairs."""
+
+    def after_drift(self, sim):
+        """After the drift: ghosts whose drift this process cannot make exactly (a shift that
+        reads neighbours it does not hold) take their owners' positions."""
 
     def end_step(self, sim):
         """After a step (and after set-up): ghost particles take their owners' values."""

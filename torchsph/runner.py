@@ -48,7 +48,7 @@ def make_simulation(cfg: dict, dtype=None, device=None, compile=None,
         from dataclasses import fields as dc_fields
         from .state import ParticleState
         whole = {f"state.{f.name}": getattr(scene.state, f.name) for f in dc_fields(scene.state)}
-        local = comm.distribute(whole, first=True)
+        local = comm.distribute(whole, first=True, domain=scene.domain)
         scene.state = ParticleState(**{k[6:]: v.to(scene.state.device) for k, v in local.items()})
     kernel = make_kernel(nm["kernel"], dim)
     compile = nm["compile"] if compile is None else compile

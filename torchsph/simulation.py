@@ -97,6 +97,8 @@ class Simulation:
         self.stale = False  # the active set must be refreshed at the next rebuild point
         if thermal is not None:
             thermal.comm, thermal.owned = self.comm, self.comm.owned(self)
+        if surface is not None:
+            surface.comm = self.comm
         if self.active_set is not None and thermal is not None:
             thermal.lit = thermal.lit_mask(state, 0.0)  # the beams' footprint seeds the active set
         self.refresh_pairs(force=True)
@@ -227,6 +229,7 @@ class Simulation:
         if self.fluid is not None and self.fluid.prm.gravity_ramp > 0:  # the accelerations at t + dt see g(t + dt)
             self.fluid.ramp_gravity(self.t + dt)
         half = step.first_half(self, dt_t)  # 1a-1e
+        self.comm.after_drift(self)
         v_half, v_tilde, rows0, H_half_r, inv = half[:5]
         vh_f = half.vh_f  # (in place: the state's v holds u~; whole arrays only where particles change)
         fr_half = self.fluid.fluid_rows if vh_f is not None else None

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .comm import SerialComm
 from .fluid import dot, embed, gather_nb, outer_sum, pair_dwdr_r, pair_geometry, pair_sum
 from .kernels import Kernel
 from .neighbors import Domain
@@ -117,6 +118,7 @@ class SurfaceForces:
         self.h = h
         self.domain = domain
         self.vapour_pressure = vapour_pressure
+        self.comm = SerialComm()  # a decomposed run's (set by the Simulation): resultants over all processes
         layers = flat_surface_layers(kernel, h_over_dx)
         self.delta_norm = sum(w for _, w in layers)
         # |grad c|-weighted mean depth of the surface band below the surface (m): the band's
@@ -244,9 +246,10 @@ class SurfaceForces:
             # on a closed surface the continuum forces (tension with alpha(T) and Marangoni)
             # have no resultant; the discrete ones keep a few per cent of the tangential total,
             # which would accelerate a free drop as a whole: remove it as a uniform traction
+            # (over the particles of every process: a decomposed run's ghosts are not counted)
             mr = m.index_select(0, rows).unsqueeze(-1)
-            F = (mr * a).sum(0)
-            parts["zero_net_force"] = -(F / (mr * per_area).sum(0).clamp_min(1e-300)) * per_area
+            F = self.comm.sum_owned(rows, mr * a)
+            parts["zero_net_force"] = -(F / self.comm.sum_owned(rows, mr * per_area).clamp_min(1e-300)) * per_area
             a = a + parts["zero_net_force"]
         if rows_only:
             return rows, a
