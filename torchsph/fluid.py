@@ -40,6 +40,13 @@ def gather_nb(t: torch.Tensor, nb: torch.Tensor) -> torch.Tensor:
     return t.index_select(0, nb.reshape(-1)).view(*nb.shape, *t.shape[1:])
 
 
+def tiny(t: torch.Tensor) -> float:
+    """The floor of a denominator that may be zero, for ``t``'s dtype: 1e-300 in float64, the
+    smallest normal number in a narrower one (1e-300 is 0 in float32: no floor at all, and a
+    particle with no surface beside it divided by zero)."""
+    return 1e-300 if t.dtype == torch.float64 else torch.finfo(t.dtype).tiny
+
+
 def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Dot product over the last (spatial) axis, spelled out per component: torch.compile
     fuses it into the pair loop, whereas ``(a * b).sum(-1)`` over a length-2/3 axis
@@ -415,7 +422,7 @@ class WeaklyCompressibleFluid:
         if sh is not None:
             norm = sh.norm(dim=-1, keepdim=True)
             lim = 0.1 * dx0
-            sh = torch.where(norm > lim, sh * (lim / norm.clamp_min(1e-300)), sh)
+            sh = torch.where(norm > lim, sh * (lim / norm.clamp_min(tiny(norm))), sh)
         return embed(self.rows_f, dr, n, self.outs.get("drhodt")), sh
 
     def _wall_extrapolation(self, state, p, v_eval, g):

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import torch
 
 from .comm import SerialComm
-from .fluid import dot, embed, gather_nb, outer_sum, pair_dwdr_r, pair_geometry, pair_sum
+from .fluid import dot, embed, gather_nb, outer_sum, pair_dwdr_r, pair_geometry, pair_sum, tiny
 from .kernels import Kernel
 from .neighbors import Domain
 from .state import ParticleState, Phase
@@ -102,7 +102,7 @@ def smoothed_pairs(x, f, w, m, rho, rows, nb, mask, kernel: Kernel, h: float, do
     Wk = kernel.w(r, h) * Vw_nb * mask
     self_w = Vw_r * kernel.w(torch.zeros((), dtype=x.dtype), h)
     num = pair_sum(Wk, gather_nb(f, nb)) + f.index_select(0, rows) * self_w.unsqueeze(-1)
-    return num / (Wk.sum(1) + self_w).clamp_min(1e-300).unsqueeze(-1)
+    return num / (Wk.sum(1) + self_w).clamp_min(tiny(Wk)).unsqueeze(-1)
 
 
 class SurfaceForces:
@@ -249,7 +249,7 @@ class SurfaceForces:
             # (over the particles of every process: a decomposed run's ghosts are not counted)
             mr = m.index_select(0, rows).unsqueeze(-1)
             F = self.comm.sum_owned(rows, mr * a)
-            parts["zero_net_force"] = -(F / self.comm.sum_owned(rows, mr * per_area).clamp_min(1e-300)) * per_area
+            parts["zero_net_force"] = -(F / self.comm.sum_owned(rows, mr * per_area).clamp_min(tiny(F))) * per_area
             a = a + parts["zero_net_force"]
         if rows_only:
             return rows, a

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .fluid import embed, gather_nb, pair_geometry
+from .fluid import embed, gather_nb, pair_geometry, tiny
 from .free_surface import ColourGradient, colour_gradient_pairs  # noqa: F401 (re-exported)
 from .beam import BeamPlan, beams_power, in_beam, reachable
 from .heat_operator import ENTRY_BLOCK, ConductionOperator, SlowSplit, by_rows, row_entries
@@ -875,7 +875,7 @@ def surface_area(th, state: ParticleState) -> torch.Tensor:
     surface = gn * th.h > th.colour.threshold
     gn = torch.where(surface, gn, torch.zeros_like(gn))
     # outward unit normal n = -grad c / |grad c| on surface particles, 0 inside
-    n_out = torch.where(surface.unsqueeze(-1), -g / gn.clamp_min(1e-300).unsqueeze(-1), torch.zeros_like(g))
+    n_out = torch.where(surface.unsqueeze(-1), -g / gn.clamp_min(tiny(gn)).unsqueeze(-1), torch.zeros_like(g))
     a = (state.m / state.rho).index_select(0, rows) * gn / th.delta_norm
     normal_prev = th.normal_prev
     in_rows = th._computed("area", state.n)

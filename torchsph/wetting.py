@@ -63,7 +63,7 @@ import math
 
 import torch
 
-from .fluid import dot, gather_nb, pair_geometry, pair_sum
+from .fluid import dot, gather_nb, pair_geometry, pair_sum, tiny
 from .free_surface import SelectionArrays, colour_pair_weights
 from .kernels import Kernel
 from .neighbors import Domain
@@ -77,7 +77,7 @@ EDGE_SPREAD = 0.1
 
 def unit(v: torch.Tensor) -> torch.Tensor:
     """v / |v| over the last axis (0 where v = 0)."""
-    return v / torch.sqrt(dot(v, v)).clamp_min(1e-300).unsqueeze(-1)
+    return v / torch.sqrt(dot(v, v)).clamp_min(tiny(v)).unsqueeze(-1)
 
 
 class ContactAngle:
@@ -131,7 +131,7 @@ class ContactAngle:
         gs = pair_sum(w * self.solS, dxp)
         gn = torch.sqrt(dot(gs, gs))
         ok = (gn * self.h > self.threshold) & self.rowS
-        ns = -gs / gn.clamp_min(1e-300).unsqueeze(-1)
+        ns = -gs / gn.clamp_min(tiny(gn)).unsqueeze(-1)
         return ns.index_select(0, self.at_S.reshape(-1)).reshape(*self.at_S.shape, state.dim), \
             ok.index_select(0, self.at_S.reshape(-1)).reshape(self.at_S.shape) & (self.solid_nb > 0)
 
@@ -154,7 +154,7 @@ class ContactAngle:
         self.band_c = on.index_select(0, sub) & (gsn * self.h > self.threshold)
         if self.clear:  # the rows with solid inside their kernel support
             self.near_c = ((self.solid_nb > 0) & (r < self.kernel.radius(self.h))).any(1)
-        self.n_w = -gs / gsn.clamp_min(1e-300).unsqueeze(-1)
+        self.n_w = -gs / gsn.clamp_min(tiny(gsn)).unsqueeze(-1)
         out = -(g.index_select(0, sub) - gs)  # the melt-only colour gradient, reversed: out of the melt
         self.t = unit(out - dot(out, self.n_w).unsqueeze(-1) * self.n_w)
         self.band = torch.zeros_like(on).index_copy_(0, sub, self.band_c)
@@ -176,7 +176,7 @@ class ContactAngle:
         beside = (gather_nb(surface & ~band_full, nb)).to(Wk.dtype) * Wk
         bsum = beside.sum(1)
         seen = (bsum > 0) & band
-        wsum = bsum.clamp_min(1e-300)
+        wsum = bsum.clamp_min(tiny(bsum))
         n_d = unit(pair_sum(beside, gather_nb(normals, nb)))
         # the angle at the band's height: the surface's normal turns by its curvature on the
         # way down (cos(theta) grows by z / R over a height z on a circle / sphere of radius
@@ -192,7 +192,7 @@ class ContactAngle:
             near = self.bufs.whole("near", surface, rows, torch.zeros_like(self.band).index_copy_(0, sub, self.near_c))
             far = gather_nb(surface & ~near, nb).to(Wk.dtype) * Wk
             fsum = far.sum(1)
-            k_t = torch.where(fsum > 0, (kappa_nb * far).sum(1) / fsum.clamp_min(1e-300) / (state.dim - 1), k_d)
+            k_t = torch.where(fsum > 0, (kappa_nb * far).sum(1) / fsum.clamp_min(tiny(fsum)) / (state.dim - 1), k_d)
         cos_d = dot(n_d, self.n_w) - k_d * z_d
         if self.S is not None:
             ns_nb, ns_ok = self.solid_normals(state)
@@ -244,7 +244,7 @@ class ContactAngle:
         neighbours by V_j W_ij; returns it per table entry (R, k, d) and keeps it for
         :attr:`reaction`."""
         wsum = self.weights.sum(1, keepdim=True)
-        share = self.weights / wsum.clamp_min(1e-300) * self.band_c.to(force.dtype).unsqueeze(-1)
+        share = self.weights / wsum.clamp_min(tiny(wsum)) * self.band_c.to(force.dtype).unsqueeze(-1)
         pair = -share.unsqueeze(-1) * force.unsqueeze(1)  # (R, k, d)
         self._reaction = (state.x, self.nb_c.reshape(-1), pair.reshape(-1, state.dim))
         return pair
