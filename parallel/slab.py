@@ -283,27 +283,8 @@ class SlabComm:
         self.refresh(sim)
 
     def after_drift(self, sim):
-        """With particle shifting a ghost's shift reads neighbours up to a search radius beyond
-        it, which the outer ghosts lack: the fluid ghosts take their owners' positions before
-        anything reads the drifted ones (the pair geometry that the next step's continuity and
-        shift reuse included; without this an owned particle near a slab boundary drifted
-        from the single-process run by 1e-9 within 3 steps, and 0.1 of the domain in 60)."""
-        if sim.fluid is None or sim.fluid.prm.shifting <= 0:
-            return
-        x = sim.state.x
-        fluid = sim.state.phase == 0
-        out = [{} for _ in range(self.size)]
-        for q in range(self.size):
-            if q != self.rank:
-                sel = self.send[q][fluid.index_select(0, self.send[q])] if self.send[q].numel() else self.send[q]
-                out[q] = {"pos": _np(torch.nonzero(fluid.index_select(0, self.send[q])).squeeze(1)),
-                          "x": _np(x.index_select(0, sel))}
-        got = self.c.alltoall(out)
-        for q, g in enumerate(got):
-            if q == self.rank or not len(g["pos"]):
-                continue
-            rows = self.recv[q].index_select(0, torch.as_tensor(g["pos"], dtype=torch.long))
-            x.index_copy_(0, rows, torch.as_tensor(g["x"], dtype=x.dtype).to(x.device))
+        """See :func:`_positions_from_owners`."""
+        _positions_from_owners(self, sim)
 
     # --- decomposition ----------------------------------------------------------------------
     def distribute(self, arrays: dict[str, torch.Tensor], first: bool = False, domain=None):
@@ -351,44 +332,8 @@ class SlabComm:
         return {k: torch.cat([b[k].to(mine[k].dtype) for b in blocks]) for k in mine}
 
     def refresh(self, sim):
-        """Ghost rows take their owners' current values of every per-particle array.
-
-        Between pair selections only the ghosts whose owners are in the active set's work set
-        (or fluid) are sent: a particle outside it is rigid cold solid, which no pair term
-        reads and whose only change in a step, x + dt v with its body's velocity, every rank
-        computes alike. After a selection (a rebuild, a phase change), a migration or a change
-        of rows every ghost is sent."""
-        arrays = sim.particle_arrays()
-        key = (sim.n_selections, sim.state.n)
-        hot = None
-        if key == self._seen and "as.work" in arrays:
-            hot = arrays["as.work"] | (sim.state.phase == 0)
-        self._seen = key
-        self.n_refresh[hot is not None] += 1
-        send = self.send if hot is None else [s[hot.index_select(0, s)] if s.numel() else s for s in self.send]
-        out = [{k: _np(v.index_select(0, send[q])) for k, v in arrays.items()} if q != self.rank else {}
-               for q in range(self.size)]
-        if hot is not None:  # which of the ghost list's entries come
-            for q in range(self.size):
-                if q != self.rank:
-                    out[q]["_pos"] = _np(torch.nonzero(hot.index_select(0, self.send[q])).squeeze(1))
-        got = self.c.alltoall(out)
-        changed = False
-        for q, g in enumerate(got):
-            rows = self.recv[q]
-            if "_pos" in g:
-                rows = rows.index_select(0, torch.as_tensor(g.pop("_pos"), dtype=torch.long))
-            if rows.numel() == 0:
-                continue
-            for k, v in g.items():
-                if k not in arrays:  # a lazily built cache this rank has not built: it builds it whole
-                    continue
-                # in place, on the ghost rows only: a copy of every whole array at every step
-                # cost 20-45 ms of a full-scene step on each rank
-                arrays[k].index_copy_(0, rows, torch.as_tensor(v, dtype=arrays[k].dtype))
-                changed = True
-        if changed:  # (a ghost's phase may have changed)
-            fluid_set(sim)
+        """See :func:`_refresh`."""
+        _refresh(self, sim)
 
     # a migration moves the slab boundaries when the ranks' work differs by more than this
     REBALANCE_ABOVE = 1.1
@@ -525,3 +470,68 @@ def make_comm(cfg: dict, comm=None) -> SlabComm:
     hp = halo_parts(cfg)
     return SlabComm(hp["search"], hp["skin"], stages=hp["stages"], comm=comm,
                     rebalance_every=cfg["numerics"].get("rebalance_every", 0), slack_skins=hp["slack_skins"])
+
+
+def _positions_from_owners(comm, sim):
+    """With particle shifting a ghost's shift reads neighbours up to a search radius beyond
+    it, which the outer ghosts lack: the fluid ghosts take their owners' positions before
+    anything reads the drifted ones (the pair geometry that the next step's continuity and
+    shift reuse included; without this the sloshing tank with shifting ended 0.07 of its
+    size off the single-process run in x after 40 steps on 2 ranks)."""
+    if sim.fluid is None or sim.fluid.prm.shifting <= 0:
+        return
+    x = sim.state.x
+    fluid = sim.state.phase == 0
+    out = [{} for _ in range(comm.size)]
+    for q in range(comm.size):
+        if q != comm.rank:
+            sel = comm.send[q][fluid.index_select(0, comm.send[q])] if comm.send[q].numel() else comm.send[q]
+            out[q] = {"pos": _np(torch.nonzero(fluid.index_select(0, comm.send[q])).squeeze(1)),
+                      "x": _np(x.index_select(0, sel))}
+    got = comm.c.alltoall(out)
+    for q, g in enumerate(got):
+        if q == comm.rank or not len(g["pos"]):
+            continue
+        rows = comm.recv[q].index_select(0, torch.as_tensor(g["pos"], dtype=torch.long))
+        x.index_copy_(0, rows, torch.as_tensor(g["x"], dtype=x.dtype).to(x.device))
+
+
+def _refresh(comm, sim):
+    """Ghost rows take their owners' current values of every per-particle array.
+
+    Between pair selections only the ghosts whose owners are in the active set's work set
+    (or fluid) are sent: a particle outside it is rigid cold solid, which no pair term
+    reads and whose only change in a step, x + dt v with its body's velocity, every rank
+    computes alike. After a selection (a rebuild, a phase change), a migration or a change
+    of rows every ghost is sent."""
+    arrays = sim.particle_arrays()
+    key = (sim.n_selections, sim.state.n)
+    hot = None
+    if key == comm._seen and "as.work" in arrays:
+        hot = arrays["as.work"] | (sim.state.phase == 0)
+    comm._seen = key
+    comm.n_refresh[hot is not None] += 1
+    send = comm.send if hot is None else [s[hot.index_select(0, s)] if s.numel() else s for s in comm.send]
+    out = [{k: _np(v.index_select(0, send[q])) for k, v in arrays.items()} if q != comm.rank else {}
+           for q in range(comm.size)]
+    if hot is not None:  # which of the ghost list's entries come
+        for q in range(comm.size):
+            if q != comm.rank:
+                out[q]["_pos"] = _np(torch.nonzero(hot.index_select(0, comm.send[q])).squeeze(1))
+    got = comm.c.alltoall(out)
+    changed = False
+    for q, g in enumerate(got):
+        rows = comm.recv[q]
+        if "_pos" in g:
+            rows = rows.index_select(0, torch.as_tensor(g.pop("_pos"), dtype=torch.long))
+        if rows.numel() == 0:
+            continue
+        for k, v in g.items():
+            if k not in arrays:  # a lazily built cache this rank has not built: it builds it whole
+                continue
+            # in place, on the ghost rows only: a copy of every whole array at every step
+            # cost 20-45 ms of a full-scene step on each rank
+            arrays[k].index_copy_(0, rows, torch.as_tensor(v, dtype=arrays[k].dtype))
+            changed = True
+    if changed:  # (a ghost's phase may have changed)
+        fluid_set(sim)
