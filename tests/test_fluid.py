@@ -131,7 +131,7 @@ def test_cuda_matches_cpu():
 
 def test_taylor_green_with_no_numerics_table_gets_the_verified_scheme(tmp_path):
     """A user's own Taylor-Green case at Re = 400 (64^2) that names no [numerics] gets the
-    scheme the verification measured (delta-SPH 0.1, shifting 1.0: the scene's defaults) and
+    scheme the verification measured (delta-SPH 0.1, shifting 0.2: the scene's defaults) and
     decays within 2 % of U exp(-8 pi^2 t / Re) at t = 1 (with the global defaults, no
     diffusion and no shifting, it ends ~31 % off)."""
     import math
@@ -143,7 +143,7 @@ def test_taylor_green_with_no_numerics_table_gets_the_verified_scheme(tmp_path):
     case.write_text('[scene]\ntype = "taylor_green"\ndim = 2\nlength_m = 1.0\nnx = 64\nU_m_s = 1.0\n\n'
                     "[fluid]\nrho0_kg_m3 = 1.0\nc0_m_s = 10.0\nviscosity_Pa_s = 0.0025\n\n[run]\nt_end_s = 1.0\n")
     _, cfg = load_case(case)
-    assert cfg["numerics"]["density_diffusion"] == 0.1 and cfg["numerics"]["shifting"] == 1.0
+    assert cfg["numerics"]["density_diffusion"] == 0.1 and cfg["numerics"]["shifting"] == 0.2
     _, sim = make_simulation(cfg)
     run_steps(sim, t_end=1.0)
     umax = float(sim.state.v.norm(dim=-1).max())
@@ -175,3 +175,35 @@ def test_a_reused_rate_array_is_zero_off_the_rows_of_its_last_use():
         assert e.out is out and len(e.dirty) == 2
     longer = embed(rows, vals, n + 1, e)
     assert longer.shape[0] == n + 1 and longer is e.out and torch.equal(longer, embed(rows, vals, n + 1))
+
+
+def growth_of_a_displacement(C: float, steps: int) -> float:
+    """The largest position difference after ``steps`` between a 30^2 Taylor-Green vortex and the
+    same with one particle moved by 1e-12, with the shift's coefficient C (set on the model, past
+    the case's validation), over the 1e-12."""
+    ends = []
+    for eps in (0.0, 1e-12):
+        _, sim = sim_for("taylor_green_2d", "scene.nx=30", "numerics.shifting=0.1")
+        sim.fluid.prm.shifting = C
+        sim.state.x[7, 0] += eps
+        run_steps(sim, steps=steps)
+        ends.append(sim.state.x[sim.state.id.argsort()])
+    return float((ends[0] - ends[1]).abs().max()) / 1e-12
+
+
+def test_the_shift_is_stable_below_its_computed_limit_and_amplifies_above_it():
+    """torchsph.fluid.shifting_limit (the linearised shift's largest gain over the lattice's waves)
+    is 0.51 for Wendland C2 at h = 1.5 dx in 2-D. On the vortex's lattice (30^2, the first 20
+    steps, before the flow has deformed it) a 1e-12 displacement decays at 0.8 of the limit
+    (measured 0.34x) and grows more than 100x at 1.4 of it (1 577x at C = 0.7, 1e7x at 1.0).
+    A case above the limit is refused, naming it."""
+    from torchsph.config import CaseError
+    from torchsph.fluid import shifting_limit
+
+    lim = shifting_limit("wendland_c2", 2, 1.5)
+    assert 0.50 < lim < 0.52
+    assert shifting_limit("wendland_c2", 3, 1.5) > lim  # more neighbours share the shift
+    assert growth_of_a_displacement(0.8 * lim, steps=20) < 1.0
+    assert growth_of_a_displacement(1.4 * lim, steps=20) > 100.0
+    with pytest.raises(CaseError, match=r"shifting = 0.6: above the shift's stability limit 0.51 .*must be <= 0.51"):
+        load_case(CASES / "taylor_green_2d", ["numerics.shifting=0.6"])

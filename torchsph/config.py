@@ -286,6 +286,15 @@ def validate(raw: dict) -> dict:
            "numerics": validate_section("numerics", _with_defaults(raw.get("numerics", {}), spec.numerics),
                                         NUMERICS, dim),
            "run": validate_section("run", raw["run"], RUN, dim)}
+    nm = cfg["numerics"]
+    if nm["shifting"] > 0:  # above its stability limit the shift amplifies the lattice's shortest waves
+        from .fluid import shifting_limit
+        lim = shifting_limit(nm["kernel"], dim, nm["h_over_dx"])
+        if nm["shifting"] > lim:
+            raise CaseError(f"[numerics] shifting = {_fmt(nm['shifting'])}: above the shift's stability limit "
+                            f"{math.floor(lim * 100) / 100:g} for {nm['kernel']} at h_over_dx = {_fmt(nm['h_over_dx'])} "
+                            f"in {dim}-D (there it amplifies the particles' displacements step by step): "
+                            f"must be <= {math.floor(lim * 100) / 100:g}")
     if spec.has_fluid:
         for key in ("c0_m_s", "viscosity_Pa_s"):
             if cfg["fluid"][key] is None:

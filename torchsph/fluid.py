@@ -12,6 +12,7 @@ recompile).
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -152,6 +153,46 @@ def momentum_pairs(x, u_visc, rho, p, m, rows, nb, eta: float, kernel: Kernel, h
     if split:
         return f_p * minv, f_v * minv, dx, dWr
     return (f_p + f_v) * minv, None, dx, dWr
+
+
+@functools.lru_cache(maxsize=None)
+def shifting_limit(kernel: str, dim: int, h_over_dx: float) -> float:
+    """The largest particle-shifting coefficient C for which the shift is stable on a lattice
+    of spacing dx: the shift dr_i = -C h^2 sum_j V_j f(W_ij) grad W_ij (see
+    :func:`continuity_pairs`), linearised about the lattice, moves a displacement wave
+    xi e^{ik.x} by -C h^2 A(k) xi with A(k) = sum_j V_j J(r_j) (1 - cos k.r_j) (J the Jacobian
+    of f grad W at the lattice offset r_j); it amplifies the wave unless C h^2 lambda_max(A(k))
+    <= 2 for every k. Returned: 2 / (h^2 max over k of the largest |eigenvalue|), k on a
+    13^d grid of the Brillouin zone's quarter (the lattice's symmetry gives the rest).
+    Wendland C2 at h = 1.5 dx: 0.51 (2-D), 0.59 (3-D); measured on the Taylor-Green vortex,
+    a 1e-12 displacement decays at C = 0.3, stays at 0.5 and grows to 3e-4 of the box in
+    40 steps at 0.7."""
+    import itertools
+    import math
+
+    from .kernels import make_kernel
+
+    K, dx = make_kernel(kernel, dim), 1.0
+    h = h_over_dx * dx
+    R, m = K.radius(h), int(math.ceil(K.radius(h) / dx))
+    offs = torch.tensor([o for o in itertools.product(range(-m, m + 1), repeat=dim) if any(o)],
+                        dtype=torch.float64) * dx
+    offs = offs[offs.norm(dim=1) < R]
+    W0 = K.w(torch.tensor(dx, dtype=torch.float64), h)
+
+    def F(r):  # f(W) grad W at offsets r
+        q = r.norm(dim=-1)
+        W = K.w(q, h)
+        return ((1.0 + 0.2 * (W / W0) ** 4) * K.dwdr(q, h) / q).unsqueeze(-1) * r
+
+    eps, eye = 1e-6 * dx, torch.eye(dim, dtype=torch.float64)
+    J = torch.stack([(F(offs + eps * eye[a]) - F(offs - eps * eye[a])) / (2 * eps) for a in range(dim)], -1)
+    n = 13
+    ks = torch.tensor(list(itertools.product(range(n), repeat=dim)), dtype=torch.float64) * (math.pi / dx / (n - 1))
+    c = 1.0 - torch.cos(ks @ offs.T)  # (k, offsets)
+    A = torch.einsum("ko,oij->kij", c, J) * dx**dim
+    lam = torch.linalg.eigvalsh(0.5 * (A + A.transpose(1, 2))).abs().max()
+    return float(2.0 / (h * h * lam))
 
 
 def continuity_pairs(v, m, rho, rows, nb, dx, dWr, ff, delta_h_c0: float, rho0_over_c02: float,

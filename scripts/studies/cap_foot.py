@@ -11,7 +11,7 @@ theta_eq compared so: docs/VERIFICATION.md.
 
     python scripts/studies/cap_foot.py --start 105          # R/8, to 14 ms: ~4 min
     python scripts/studies/cap_foot.py --start 135
-    python scripts/studies/cap_foot.py --start 105 --set numerics.shifting=1.0 --t-end 0.02
+    python scripts/studies/cap_foot.py --start 105 --set numerics.shifting=0.5 --t-end 0.02
 """
 from __future__ import annotations
 
