@@ -485,9 +485,8 @@ def _positions_from_owners(comm, sim):
     out = [{} for _ in range(comm.size)]
     for q in range(comm.size):
         if q != comm.rank:
-            sel = comm.send[q][fluid.index_select(0, comm.send[q])] if comm.send[q].numel() else comm.send[q]
-            out[q] = {"pos": _np(torch.nonzero(fluid.index_select(0, comm.send[q])).squeeze(1)),
-                      "x": _np(x.index_select(0, sel))}
+            f = fluid.index_select(0, comm.send[q])  # (the ghost list's fluid entries, and where they stand)
+            out[q] = {"pos": _np(torch.nonzero(f).squeeze(1)), "x": _np(x.index_select(0, comm.send[q][f]))}
     got = comm.c.alltoall(out)
     for q, g in enumerate(got):
         if q == comm.rank or not len(g["pos"]):

@@ -155,6 +155,12 @@ def momentum_pairs(x, u_visc, rho, p, m, rows, nb, eta: float, kernel: Kernel, h
     return (f_p + f_v) * minv, None, dx, dWr
 
 
+def shift_weight(Wk: torch.Tensor, W0) -> torch.Tensor:
+    """The shift's pair factor 1 + 0.2 (W_ij / W(dx0))^4 (Sun et al. 2017), which multiplies
+    V_j grad W_ij (:func:`continuity_pairs`, :func:`shifting_limit`)."""
+    return 1.0 + 0.2 * (Wk / W0) ** 4
+
+
 @functools.lru_cache(maxsize=None)
 def shifting_limit(kernel: str, dim: int, h_over_dx: float) -> float:
     """The largest particle-shifting coefficient C for which the shift is stable on a lattice
@@ -182,8 +188,7 @@ def shifting_limit(kernel: str, dim: int, h_over_dx: float) -> float:
 
     def F(r):  # f(W) grad W at offsets r
         q = r.norm(dim=-1)
-        W = K.w(q, h)
-        return ((1.0 + 0.2 * (W / W0) ** 4) * K.dwdr(q, h) / q).unsqueeze(-1) * r
+        return (shift_weight(K.w(q, h), W0) * pair_dwdr_r(q, K, h)).unsqueeze(-1) * r
 
     eps, eye = 1e-6 * dx, torch.eye(dim, dtype=torch.float64)
     J = torch.stack([(F(offs + eps * eye[a]) - F(offs - eps * eye[a])) / (2 * eps) for a in range(dim)], -1)
@@ -219,7 +224,7 @@ def continuity_pairs(v, m, rho, rows, nb, dx, dWr, ff, delta_h_c0: float, rho0_o
     shift = None
     if shift_coef > 0.0:
         Wk = kernel.w(torch.sqrt(r2), h)
-        wgt = (m_j / rho_j) * (1.0 + 0.2 * (Wk / W0) ** 4) * dWr
+        wgt = (m_j / rho_j) * shift_weight(Wk, W0) * dWr
         shift = pair_sum(wgt, dx) * (-shift_coef * h * h)
     return val.sum(1), shift
 
