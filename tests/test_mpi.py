@@ -100,6 +100,8 @@ def test_decomposed_run_equals_single_process(tmp_path, which):
         assert sum(t.pi.numel() for t in sim.terms) > 0
     if which == "resultant":
         assert sim.surface.prm.zero_net_force and sim.surface.n_surface > 0
+    if which == "channel":  # the fastest particles crossed the periodic end (half the final speed over the run)
+        assert 0.5 * float(sim.state.v[:, 0].max()) * sim.t > sim.domain.length[0]
     if which == "deposition":  # what the case must exercise
         assert sim.feeder.n_fed >= 2 and (ref["phase"] == 0).sum() > 0 and sim.active_set is not None
         assert 0 < float(sim.thermal.lit.sum())
