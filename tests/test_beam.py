@@ -147,3 +147,24 @@ def test_several_beams_traced_together_equal_each_traced_alone():
         alone.index_add_(0, sel, beam_power(x.index_select(0, rows.index_select(0, sel)), one(sel.numel()), b, t, dx))
     assert torch.allclose(together, alone, rtol=1e-13, atol=0.0)
     assert float(together.sum()) == pytest.approx(sum(b.efficiency * b.power for b in beams), rel=1e-2)
+
+
+@pytest.mark.parametrize("azimuth,phi", [(0.0, 0.0), (45.0, 0.0), (45.0, 90.0)])
+def test_a_body_on_another_lattice_loses_none_of_the_beam(azimuth, phi):
+    """A block standing on a plate with its lattice offset by half a spacing in x and y (as a
+    wire over a substrate): the bins are centred on the block's column nearest the axis, so
+    the plate's columns lie on bin edges and round-off sends some to the neighbouring bin,
+    leaving empty bins inside the silhouette (-10 % of eta0 Q0 vertically, -7 % at 45 deg,
+    before their power went to the lit bins around them). The plate covers the spot: the
+    absorbed power is eta0 Q0 within 1e-6 (measured 2e-8), and the block, which stands in
+    the spot, takes its part."""
+    dx = 1e-4
+    n, m = 70, 12
+    x_plate = plate(n, n, 4, dx)
+    block = lattice((m, m, m), dx, origin=(-m * dx / 2 + dx / 2, -m * dx / 2 + dx / 2, 0.5 * dx), dtype=torch.float64)
+    x = torch.cat([block, x_plate])
+    a, p = math.radians(azimuth), math.radians(phi)
+    beam = Beam(Q0, ETA, R, (math.sin(a) * math.cos(p), math.sin(a) * math.sin(p), -math.cos(a)), (0.0, 0.0, 0.0))
+    P, per = total(x, beam, dx)
+    assert P == pytest.approx(ETA * Q0, rel=1e-6)
+    assert float(per[: block.shape[0]].sum()) > 0.1 * ETA * Q0

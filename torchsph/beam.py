@@ -121,7 +121,8 @@ class BeamPlan:
         q0 = torch.tensor([b.efficiency * 2.0 * b.power / (math.pi * b.radius**2) for b in beams],
                           dtype=dtype, device=device)
         self.reach2 = ((cutoff * radius) ** 2).index_select(0, self.seg)
-        self.inv_r2 = (2.0 / radius**2).index_select(0, self.seg)
+        self.q0_beam, self.inv_r2_beam = q0, 2.0 / radius**2
+        self.inv_r2 = self.inv_r2_beam.index_select(0, self.seg)
         self.q0 = q0.index_select(0, self.seg)
         # bins of side dx around the candidate nearest each axis: (2M + 1)^2 per beam, plus
         # one per beam for the rows that are no candidates (nothing is taken from it)
@@ -180,7 +181,37 @@ class BeamPlan:
         ac = a0 + ia.to(dt) * dx
         bc = b0 + ib.to(dt) * dx
         q = self.q0 * torch.exp(-(ac * ac + bc * bc) * self.inv_r2)
-        return torch.where(lit, q * (dx * dx), torch.zeros_like(q))
+        held = self.holes(dmin, a0, b0)  # the power of the empty bins between lit ones, per bin
+        return torch.where(lit, q * (dx * dx) + held.index_select(0, key), torch.zeros_like(q))
+
+    def holes(self, dmin: torch.Tensor, a0: torch.Tensor, b0: torch.Tensor) -> torch.Tensor:
+        """Per bin key: the power of the empty bins next to it that lie between two lit bins
+        (along a, along b or along a diagonal), shared equally among those lit neighbours.
+        Bodies whose lattices are offset from each other (a wire over a substrate) put the
+        columns of one at the bin edges of the other, where round-off sends a column to either
+        bin: one bin gets two, its neighbour none, and that bin's power was lost (-4 to -15 % of
+        a beam in the deposition scene at dx = 0.2 mm). Such a hole has lit bins on both sides
+        along the axis its columns were split on (two holes cannot be adjacent there; where
+        both axes split, a hole at a crossing has them along the diagonals), while a bin beyond
+        a silhouette's edge has not. The hole's power is its midpoint value, as a lit bin's."""
+        nseg, M, side, dx = self.nseg, self.M, self.side, self.dx
+        lit = torch.isfinite(dmin.view(nseg, self.nbin + 1)[:, : self.nbin]).view(nseg, side, side)
+        pad = torch.nn.functional.pad(lit, (1, 1, 1, 1))
+        # the neighbour pairs (offset of one member; the other is opposite): a, b, the diagonals
+        steps = ((1, 0), (0, 1), (1, 1), (1, -1))
+        at = lambda p, da, db: p[:, 1 + da: 1 + da + side, 1 + db: 1 + db + side]  # noqa: E731
+        pairs = [at(pad, da, db) & at(pad, -da, -db) for da, db in steps]
+        hole = ~lit & (pairs[0] | pairs[1] | pairs[2] | pairs[3])
+        i = torch.arange(-M, M + 1, dtype=dmin.dtype, device=dmin.device) * dx
+        ac, bc = a0[:nseg].view(nseg, 1, 1) + i.view(1, side, 1), b0[:nseg].view(nseg, 1, 1) + i.view(1, 1, side)
+        q = self.q0_beam.view(nseg, 1, 1) * torch.exp(-(ac * ac + bc * bc) * self.inv_r2_beam.view(nseg, 1, 1))
+        n_pairs = sum(p.to(q.dtype) for p in pairs)
+        share = torch.where(hole, q * (dx * dx), torch.zeros_like(q)) / (2.0 * n_pairs).clamp_min(1.0)
+        got = torch.zeros_like(q)
+        for (da, db), p in zip(steps, pairs):  # each member of a qualifying pair takes a share
+            sp = torch.nn.functional.pad(torch.where(p & hole, share, torch.zeros_like(share)), (1, 1, 1, 1))
+            got = got + at(sp, -da, -db) + at(sp, da, db)
+        return torch.nn.functional.pad(got.reshape(nseg, self.nbin), (0, 1)).reshape(-1)
 
     def power(self, x: torch.Tensor, t) -> torch.Tensor:
         """Power (W) each of the ``n`` rows absorbs from all beams (summed over beams in order)."""
