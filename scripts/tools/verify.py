@@ -132,8 +132,14 @@ def beams():
     xc = lattice((n, n, 140), dx, origin=(-d / 2, -d / 2, -3.5e-3), dtype=torch.float64)
     xc = xc[(xc[:, 0] ** 2 + xc[:, 1] ** 2) < (d / 2) ** 2]
     cyl = float(beam_power(xc, one(xc), b, 0, dx).sum()) / (255 * gaussian_fraction_in_strip(d, 0.75e-3)) - 1
+    # a block on a plate whose lattice is offset from it by half a spacing (a wire over a substrate)
+    m, dx = 12, 1e-4
+    xb = torch.cat([lattice((m, m, m), dx, origin=(-(m - 1) * dx / 2, -(m - 1) * dx / 2, 0.5 * dx), dtype=torch.float64),
+                    plate(110, dx, 0.0)])
+    blk = float(beam_power(xb, one(xb), b, 0, dx).sum()) / 255 - 1
     return (f"flat {flat * 100:+.1e} %, plate tilted 20 deg {tilt * 100:+.1e} %, 1.2 mm wire "
-            f"{cyl * 100:+.3f} % (vs eta0 Q0 erf(d / sqrt(2) r))"), "1 % flat, 2 % tilted / wire"
+            f"{cyl * 100:+.3f} % (vs eta0 Q0 erf(d / sqrt(2) r)), a block on a half-offset lattice {blk * 100:+.1e} %"), \
+        "1 % flat, 2 % tilted / wire, 1e-4 % block"
 
 
 def radiation():
