@@ -8,6 +8,13 @@ is fed, the rest on the substrate to make a pool the melt can join.
 
     python scripts/studies/beam_split.py cases/perpendicular_350W --preview
     python scripts/studies/beam_split.py cases/along_250W --aims -0.9,-0.6,-0.3,0,0.25 --gaps 0,0.25
+    python scripts/studies/beam_split.py cases/perpendicular_350W --preview --aims 0,-0.3 \
+        --gaps 0.3,0.4,0.5,0.6,0.7,0.8 --standoff --set scene.dx_m=0.1e-3
+
+With ``--standoff``, after the table: per aim, the tip height at which the wire takes just the
+power its feed needs (linear between the listed tips where the wire's power falls through it),
+and that height above the aim point. A tip fed more slowly than the beams melt it climbs to that
+height and hangs there; melt leaves it for the pool only across that gap.
 """
 from __future__ import annotations
 
@@ -51,6 +58,7 @@ def main():
     ap.add_argument("--aims", default="-0.9,-0.6,-0.3,0,0.25", help="aim heights, mm (comma-separated)")
     ap.add_argument("--gaps", default="0,0.25", help="wire-tip heights above the substrate, mm")
     ap.add_argument("--set", action="append", default=[], help="extra overrides")
+    ap.add_argument("--standoff", action="store_true", help="per aim, the tip height where the wire takes its melting power")
     a = ap.parse_args()
     over = list(a.set)
     _, cfg = load_case(a.case, over, a.preview)
@@ -59,10 +67,36 @@ def main():
           f"{cfg['scene']['wire_feed_m_s'] * 1e3:.0f} mm/s needs {melt_power(cfg):.0f} W")
     print("| tip height (mm) | aim height (mm) | on the wire (W) | on the substrate (W) |")
     print("|---|---|---|---|")
-    for gap in (float(g) * 1e-3 for g in a.gaps.split(",")):
-        for aim in (float(v) * 1e-3 for v in a.aims.split(",")):
+    gaps = [float(g) * 1e-3 for g in a.gaps.split(",")]
+    aims = [float(v) * 1e-3 for v in a.aims.split(",")]
+    on_wire = {}
+    for gap in gaps:
+        for aim in aims:
             w, s = split(a.case, over, aim, gap, a.preview)
+            on_wire[aim, gap] = w
             print(f"| {gap * 1e3:.2f} | {aim * 1e3:+.2f} | {w:.0f} | {s:.0f} |", flush=True)
+    if a.standoff:
+        need = melt_power(cfg)
+        print(f"\n| aim height (mm) | tip height where the wire takes {need:.0f} W (mm) | above the aim (mm) |")
+        print("|---|---|---|")
+        for aim in aims:
+            z = standoff([(g, on_wire[aim, g]) for g in sorted(gaps)], need)
+            print(f"| {aim * 1e3:+.2f} | {fmt_mm(z)} | {fmt_mm(z if isinstance(z, str) else z - aim)} |")
+
+
+def standoff(points: list[tuple[float, float]], need: float) -> float | str:
+    """The first tip height (ascending) at which the wire's power falls through ``need``,
+    linear between the two listed tips around it; else where it lies, in words."""
+    if points and points[0][1] < need:
+        return "below the lowest tip listed"
+    for (z0, p0), (z1, p1) in zip(points, points[1:]):
+        if p0 >= need > p1:
+            return z0 + (p0 - need) / (p0 - p1) * (z1 - z0)
+    return "above the highest tip listed"
+
+
+def fmt_mm(z) -> str:
+    return z if isinstance(z, str) else f"{z * 1e3:.2f}"
 
 
 if __name__ == "__main__":
