@@ -149,6 +149,17 @@ def test_several_beams_traced_together_equal_each_traced_alone():
     assert float(together.sum()) == pytest.approx(sum(b.efficiency * b.power for b in beams), rel=1e-2)
 
 
+def block_on_offset_plate(dx=1e-4, n=70, m=12):
+    """A 12-spacing block standing on a plate, its lattice offset by half a spacing in x and y."""
+    block = lattice((m, m, m), dx, origin=(-m * dx / 2 + dx / 2, -m * dx / 2 + dx / 2, 0.5 * dx), dtype=torch.float64)
+    return torch.cat([block, plate(n, n, 4, dx)]), block.shape[0]
+
+
+def tilted_beam(azimuth, phi, power=Q0, aim=(0.0, 0.0, 0.0)):
+    a, p = math.radians(azimuth), math.radians(phi)
+    return Beam(power, ETA, R, (math.sin(a) * math.cos(p), math.sin(a) * math.sin(p), -math.cos(a)), aim)
+
+
 @pytest.mark.parametrize("azimuth,phi", [(0.0, 0.0), (45.0, 0.0), (45.0, 90.0)])
 def test_a_body_on_another_lattice_loses_none_of_the_beam(azimuth, phi):
     """A block standing on a plate with its lattice offset by half a spacing in x and y (as a
@@ -159,12 +170,23 @@ def test_a_body_on_another_lattice_loses_none_of_the_beam(azimuth, phi):
     absorbed power is eta0 Q0 within 1e-6 (measured 2e-8), and the block, which stands in
     the spot, takes its part."""
     dx = 1e-4
-    n, m = 70, 12
-    x_plate = plate(n, n, 4, dx)
-    block = lattice((m, m, m), dx, origin=(-m * dx / 2 + dx / 2, -m * dx / 2 + dx / 2, 0.5 * dx), dtype=torch.float64)
-    x = torch.cat([block, x_plate])
-    a, p = math.radians(azimuth), math.radians(phi)
-    beam = Beam(Q0, ETA, R, (math.sin(a) * math.cos(p), math.sin(a) * math.sin(p), -math.cos(a)), (0.0, 0.0, 0.0))
-    P, per = total(x, beam, dx)
+    x, n_block = block_on_offset_plate(dx)
+    P, per = total(x, tilted_beam(azimuth, phi), dx)
     assert P == pytest.approx(ETA * Q0, rel=1e-6)
-    assert float(per[: block.shape[0]].sum()) > 0.1 * ETA * Q0
+    assert float(per[:n_block].sum()) > 0.1 * ETA * Q0
+
+
+def test_beams_traced_together_fill_each_beams_holes_as_alone():
+    """The holes' power is each beam's own (its own bin grid, its own Gaussian) when the beams
+    of a scene are traced in one plan: the same power per particle as each beam alone, on the
+    block over the half-offset plate, and eta0 Q0 each (a plan that took the first beam's bin
+    centre for every beam's holes put the second's holes' power at the wrong intensities)."""
+    dx = 1e-4
+    x, _ = block_on_offset_plate(dx)
+    # the second aimed 0.25 mm up the axis: its bins are centred 0.35 spacings off its axis, the
+    # first's on it, and both have holes (2.4 and 18.7 W)
+    beams = [tilted_beam(45.0, 90.0), tilted_beam(45.0, 270.0, 200.0, (0.0, 0.0, 0.25e-3)), tilted_beam(0.0, 0.0, 100.0)]
+    together = beams_power(beams, x, 0.0, dx)
+    alone = sum(total(x, b, dx)[1] for b in beams)
+    assert torch.allclose(together, alone, rtol=1e-12, atol=1e-15)
+    assert float(together.sum()) == pytest.approx(ETA * (Q0 + 200.0 + 100.0), rel=1e-6)

@@ -163,8 +163,8 @@ class BeamPlan:
         at_min = cand & (rho2 == near.index_select(0, seg))
         k0 = torch.full((nseg,), big, dtype=torch.long, device=dev).scatter_reduce(
             0, seg, torch.where(at_min, pos, torch.full_like(pos, big)), "amin").clamp_max(max(rho2.numel() - 1, 0))
-        k0 = k0.index_select(0, seg)
-        a0, b0 = a.index_select(0, k0), b.index_select(0, k0)
+        a0_beam, b0_beam = a.index_select(0, k0), b.index_select(0, k0)  # each beam's bin centre (0, 0)
+        a0, b0 = a0_beam.index_select(0, seg), b0_beam.index_select(0, seg)
         ia = torch.floor((a - a0) / dx + 0.5).long()
         ib = torch.floor((b - b0) / dx + 0.5).long()
         key = self.base + torch.where(cand, (ia + M).clamp(0, side - 1) * side + (ib + M).clamp(0, side - 1),
@@ -181,7 +181,7 @@ class BeamPlan:
         ac = a0 + ia.to(dt) * dx
         bc = b0 + ib.to(dt) * dx
         q = self.q0 * torch.exp(-(ac * ac + bc * bc) * self.inv_r2)
-        held = self.holes(dmin, a0, b0)  # the power of the empty bins between lit ones, per bin
+        held = self.holes(dmin, a0_beam, b0_beam)  # the power of the empty bins between lit ones, per bin
         return torch.where(lit, q * (dx * dx) + held.index_select(0, key), torch.zeros_like(q))
 
     def holes(self, dmin: torch.Tensor, a0: torch.Tensor, b0: torch.Tensor) -> torch.Tensor:
@@ -193,7 +193,8 @@ class BeamPlan:
         a beam in the deposition scene at dx = 0.2 mm). Such a hole has lit bins on both sides
         along the axis its columns were split on (two holes cannot be adjacent there; where
         both axes split, a hole at a crossing has them along the diagonals), while a bin beyond
-        a silhouette's edge has not. The hole's power is its midpoint value, as a lit bin's."""
+        a silhouette's edge has not. The hole's power is its midpoint value, as a lit bin's.
+        ``a0``, ``b0``: each beam's bin centre (0, 0) in its frame (nseg,)."""
         nseg, M, side, dx = self.nseg, self.M, self.side, self.dx
         lit = torch.isfinite(dmin.view(nseg, self.nbin + 1)[:, : self.nbin]).view(nseg, side, side)
         pad = torch.nn.functional.pad(lit, (1, 1, 1, 1))
@@ -203,7 +204,7 @@ class BeamPlan:
         pairs = [at(pad, da, db) & at(pad, -da, -db) for da, db in steps]
         hole = ~lit & (pairs[0] | pairs[1] | pairs[2] | pairs[3])
         i = torch.arange(-M, M + 1, dtype=dmin.dtype, device=dmin.device) * dx
-        ac, bc = a0[:nseg].view(nseg, 1, 1) + i.view(1, side, 1), b0[:nseg].view(nseg, 1, 1) + i.view(1, 1, side)
+        ac, bc = a0.view(nseg, 1, 1) + i.view(1, side, 1), b0.view(nseg, 1, 1) + i.view(1, 1, side)
         q = self.q0_beam.view(nseg, 1, 1) * torch.exp(-(ac * ac + bc * bc) * self.inv_r2_beam.view(nseg, 1, 1))
         n_pairs = sum(p.to(q.dtype) for p in pairs)
         share = torch.where(hole, q * (dx * dx), torch.zeros_like(q)) / (2.0 * n_pairs).clamp_min(1.0)
