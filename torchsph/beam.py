@@ -59,6 +59,11 @@ class Beam:
         return self._frames[key]
 
 
+def intensity(q0, inv_r2, a, b):
+    """The Gaussian's intensity q0 exp(-2 (a^2 + b^2) / r^2) normal to the beam (``inv_r2`` = 2 / r^2)."""
+    return q0 * torch.exp(-(a * a + b * b) * inv_r2)
+
+
 def beam_frame(x: torch.Tensor, beam: Beam, t: float):
     """(depth along the beam, and the two coordinates across it) of each particle at time t."""
     e, u, w, aim0, vel = beam.constants(x.dtype, x.device)
@@ -180,7 +185,7 @@ class BeamPlan:
         # hit particle instead is biased where the lattice aliases with the bins: +3.4 % seen)
         ac = a0 + ia.to(dt) * dx
         bc = b0 + ib.to(dt) * dx
-        q = self.q0 * torch.exp(-(ac * ac + bc * bc) * self.inv_r2)
+        q = intensity(self.q0, self.inv_r2, ac, bc)
         held = self.holes(dmin, a0_beam, b0_beam)  # the power of the empty bins between lit ones, per bin
         return torch.where(lit, q * (dx * dx) + held.index_select(0, key), torch.zeros_like(q))
 
@@ -205,7 +210,7 @@ class BeamPlan:
         hole = ~lit & (pairs[0] | pairs[1] | pairs[2] | pairs[3])
         i = torch.arange(-M, M + 1, dtype=dmin.dtype, device=dmin.device) * dx
         ac, bc = a0.view(nseg, 1, 1) + i.view(1, side, 1), b0.view(nseg, 1, 1) + i.view(1, 1, side)
-        q = self.q0_beam.view(nseg, 1, 1) * torch.exp(-(ac * ac + bc * bc) * self.inv_r2_beam.view(nseg, 1, 1))
+        q = intensity(self.q0_beam.view(nseg, 1, 1), self.inv_r2_beam.view(nseg, 1, 1), ac, bc)
         n_pairs = sum(p.to(q.dtype) for p in pairs)
         share = torch.where(hole, q * (dx * dx), torch.zeros_like(q)) / (2.0 * n_pairs).clamp_min(1.0)
         got = torch.zeros_like(q)
