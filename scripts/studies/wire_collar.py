@@ -9,7 +9,9 @@ top z = 0): the **collar**, the melt within ``--radius-mm`` of the axis and more
 round the wire, is held on the wire rather than laid on the substrate), in mm^3; all the
 melt; the highest melt; the solid wire's lowest particle. With the beams (the solver's
 traced, shadowed beams at the snapshot's positions), the absorbed power split four ways:
-the solid wire, the collar, the other melt, the solid substrate and bead (W).
+the solid wire, the collar, the other melt, the solid substrate and bead (W). From the run's
+deposit.json: the wire fed so far over the nominal feed (%) and the time the feed has waited
+on contact so far (s): a tip that rests on solid substrate starves the bead.
 
 A collar that grows while the bead behind the pool thins is what made the 0.2 mm rung of
 ``perpendicular_350W`` short (docs/RESOLUTION.md, "Seventh pass").
@@ -31,6 +33,18 @@ from torchsph.runner import make_simulation  # noqa: E402
 from torchsph.state import Phase  # noqa: E402
 
 
+def _feed_record(run: Path, cfg: dict) -> list[tuple[float, float, float]]:
+    """(t, wire fed over the nominal feed in %, feed wait so far in s) per record of deposit.json."""
+    path = run / "deposit.json"
+    if not path.exists():
+        return []
+    sc = cfg["scene"]
+    rate = sc["wire_feed_m_s"] * torch.pi * sc["wire_diameter_m"] ** 2 / 4 * cfg["fluid"]["rho0_kg_m3"]
+    start = sc.get("wire_feed_start_s", 0.0)
+    return [(e["t_s"], 100 * e["wire_fed_kg"] / (rate * (e["t_s"] - start)) if e["t_s"] > start else 100.0,
+             e["wire_stalled_s"]) for e in json.loads(path.read_text())]
+
+
 def collar_rows(run: Path, t_min: float, every: int, radius: float, above: float, beams: bool):
     cfg = json.loads((run / "config.json").read_text())
     cfg.pop("case", None)
@@ -39,6 +53,7 @@ def collar_rows(run: Path, t_min: float, every: int, radius: float, above: float
     if beams:
         scene, sim = make_simulation(cfg)
         traced = (sim.thermal.beams, scene.dx)
+    feed = _feed_record(run, cfg)
     snaps = sorted(run.glob("snap_*.h5"))
     for i, path in enumerate(snaps):
         with h5py.File(path) as f:
@@ -55,6 +70,9 @@ def collar_rows(run: Path, t_min: float, every: int, radius: float, above: float
         row = {"t_s": t, "collar_mm3": float(m[collar].sum()) / rho0 * 1e9, "melt_mm3": float(m[melt].sum()) / rho0 * 1e9,
                "top_of_melt_mm": float(x[melt, 2].max()) * 1e3 if melt.any() else float("nan"),
                "wire_tip_mm": float(x[wire, 2].min()) * 1e3 if wire.any() else float("nan")}
+        if feed:
+            rec = min(feed, key=lambda e: abs(e[0] - t))
+            row |= {"fed_pct": rec[1], "waited_s": rec[2]}
         if traced is not None:
             every_row = torch.ones(x.shape[0], dtype=torch.bool)
             P = sum(beam_power(x, every_row, b, t, traced[1]) for b in traced[0])
@@ -72,7 +90,7 @@ def main(argv=None):
     ap.add_argument("--above-mm", type=float, default=0.8, help="height above the substrate's top (mm)")
     ap.add_argument("--no-beams", action="store_true", help="skip the beams' power split (faster)")
     a = ap.parse_args(argv)
-    cols = ["t_s", "collar_mm3", "melt_mm3", "top_of_melt_mm", "wire_tip_mm"]
+    cols = ["t_s", "collar_mm3", "melt_mm3", "top_of_melt_mm", "wire_tip_mm", "fed_pct", "waited_s"]
     if not a.no_beams:
         cols += ["P_wire_W", "P_collar_W", "P_other_melt_W", "P_solid_W"]
     for run in a.runs:
@@ -80,8 +98,8 @@ def main(argv=None):
         print("| " + " | ".join(cols) + " |")
         print("|" + "---|" * len(cols))
         for r in collar_rows(run, a.t_min, a.every, a.radius_mm * 1e-3, a.above_mm * 1e-3, not a.no_beams):
-            print("| " + " | ".join(f"{r[c]:.3f}" if c == "t_s" else f"{r[c]:.2f}" if c.endswith("mm3") or
-                                    c.endswith("mm") else f"{r[c]:.0f}" for c in cols) + " |", flush=True)
+            print("| " + " | ".join("–" if c not in r else f"{r[c]:.3f}" if c in ("t_s", "waited_s") else f"{r[c]:.2f}" if c.endswith("mm3") or
+                                    c.endswith("mm") or c.endswith("pct") else f"{r[c]:.0f}" for c in cols) + " |", flush=True)
 
 
 if __name__ == "__main__":
