@@ -46,7 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from torchsph.io import read_snapshot  # noqa: E402
 from torchsph.post import (bead_profile, bead_settling, default_steady_range, load_run,  # noqa: E402
-                           richardson, steady_average)
+                           nominal_wire_fed_kg, richardson, steady_average)
 
 COLUMNS = [  # key, header, format, extrapolated
     ("dx_mm", "dx mm", "{:.3f}", False), ("particles", "particles", "{:,}", False), ("steps", "steps", "{:,}", False),
@@ -159,9 +159,7 @@ def analyse(d: Path, dx_mm: float) -> dict:
     # the wire actually fed against the nominal feed over the window (the feed waits on
     # contact), and the bead against the area of the wire actually fed: a wait is then not
     # counted as a resolution error (a window mean: the bins behind the wire were fed earlier)
-    sc, rho0 = cfg["scene"], cfg["fluid"]["rho0_kg_m3"]
-    feed_s = max(e["t_s"] - sc.get("wire_feed_start_s", 0.0), 0.0)
-    nominal_fed = rho0 * math.pi * sc["wire_diameter_m"] ** 2 / 4.0 * sc["wire_feed_m_s"] * feed_s
+    nominal_fed = nominal_wire_fed_kg(cfg, e["t_s"])
     row["fed_share"] = fed / nominal_fed if nominal_fed > 0 else float("nan")
     row["area_error_fed"] = (row["area_mm2"] / (row["nominal_mm2"] * row["fed_share"]) - 1.0
                              if row["fed_share"] > 0 else float("nan"))

@@ -9,6 +9,7 @@ from torchsph import checkpoint as ckpt
 from torchsph.config import CaseError, load_case
 from torchsph.deposition import WIRE, measure
 from torchsph.runner import make_simulation, run_steps
+from torchsph.post import nominal_wire_fed_kg
 from torchsph.scenes import case_beams
 from torchsph.state import Phase
 
@@ -96,6 +97,9 @@ def test_feed_can_start_late():
     moved = 8.0e-3 + 1.25e-4 - float(sim.state.x[wire.nonzero()[0], 2])
     assert info["wire_fed_kg"] == pytest.approx(rhoA * moved, rel=1e-9)
     assert info["wire_fed_kg"] == pytest.approx(rhoA * 0.3 * (sim.t - 0.005), abs=rhoA * 0.3 * 2 * sim.choose_dt()[0])
+    # the studies' nominal feed (torchsph.post) is what a feed that never waits brings, late start included
+    assert info["wire_fed_kg"] == pytest.approx(nominal_wire_fed_kg(cfg, sim.t), abs=rhoA * 0.3 * 2 * sim.choose_dt()[0])
+    assert nominal_wire_fed_kg(cfg, 0.004) == 0.0
 
 
 def test_unmelted_wire_reaching_the_substrate_stops_with_a_diagnosis():

@@ -241,6 +241,13 @@ def richardson(h, f) -> dict:
     return {"f0": f1 - d1 / ((h2 / h1) ** p - 1.0), "p": p, "why": ""}
 
 
+def nominal_wire_fed_kg(cfg: dict, t: float) -> float:
+    """Wire mass the feed brings by time t if it never waits: rho0 pi d^2 / 4 V_wire (t - t_start)."""
+    sc = cfg["scene"]
+    feed_s = max(t - sc.get("wire_feed_start_s", 0.0), 0.0)
+    return cfg["fluid"]["rho0_kg_m3"] * np.pi * sc["wire_diameter_m"] ** 2 / 4.0 * sc["wire_feed_m_s"] * feed_s
+
+
 def fed_cross_section(history: list[dict], x_lo: float, x_hi: float, V_sub: float, rho0: float) -> float:
     """Cross-section (m^2) of the wire actually fed while the substrate-frame columns
     x_lo <= x0 <= x_hi passed under the wire (t = -x_hi/V ... -x_lo/V; ``wire_fed_kg`` of

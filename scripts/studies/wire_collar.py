@@ -29,6 +29,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph.beam import beam_power  # noqa: E402
 from torchsph.deposition import WIRE  # noqa: E402
+from torchsph.post import nominal_wire_fed_kg  # noqa: E402
 from torchsph.runner import make_simulation  # noqa: E402
 from torchsph.state import Phase  # noqa: E402
 
@@ -38,11 +39,19 @@ def _feed_record(run: Path, cfg: dict) -> list[tuple[float, float, float]]:
     path = run / "deposit.json"
     if not path.exists():
         return []
-    sc = cfg["scene"]
-    rate = sc["wire_feed_m_s"] * torch.pi * sc["wire_diameter_m"] ** 2 / 4 * cfg["fluid"]["rho0_kg_m3"]
-    start = sc.get("wire_feed_start_s", 0.0)
-    return [(e["t_s"], 100 * e["wire_fed_kg"] / (rate * (e["t_s"] - start)) if e["t_s"] > start else 100.0,
-             e["wire_stalled_s"]) for e in json.loads(path.read_text())]
+    out = []
+    for e in json.loads(path.read_text()):
+        nominal = nominal_wire_fed_kg(cfg, e["t_s"])
+        out.append((e["t_s"], 100 * e["wire_fed_kg"] / nominal if nominal > 0 else 100.0, e["wire_stalled_s"]))
+    return out
+
+
+def _fmt(col: str, row: dict) -> str:
+    if col not in row:
+        return "–"
+    if col in ("t_s", "waited_s"):
+        return f"{row[col]:.3f}"
+    return f"{row[col]:.0f}" if col.endswith("_W") else f"{row[col]:.2f}"
 
 
 def collar_rows(run: Path, t_min: float, every: int, radius: float, above: float, beams: bool):
@@ -98,8 +107,7 @@ def main(argv=None):
         print("| " + " | ".join(cols) + " |")
         print("|" + "---|" * len(cols))
         for r in collar_rows(run, a.t_min, a.every, a.radius_mm * 1e-3, a.above_mm * 1e-3, not a.no_beams):
-            print("| " + " | ".join("–" if c not in r else f"{r[c]:.3f}" if c in ("t_s", "waited_s") else f"{r[c]:.2f}" if c.endswith("mm3") or
-                                    c.endswith("mm") or c.endswith("pct") else f"{r[c]:.0f}" for c in cols) + " |", flush=True)
+            print("| " + " | ".join(_fmt(c, r) for c in cols) + " |", flush=True)
 
 
 if __name__ == "__main__":
