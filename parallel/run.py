@@ -22,6 +22,7 @@ from mpi4py import MPI
 
 from torchsph.checkpoint import FORMAT as ckpt_format
 from torchsph.checkpoint import CheckpointError, check_case, fresh_caches, read, recorded_physics, write
+from torchsph.particles import field_values, particle_arrays
 from torchsph.runner import SerialRun, make_simulation, run_case
 from torchsph.state import ParticleState
 
@@ -96,7 +97,7 @@ def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | No
     changes = check_case(d, cfg, path, recorded, branch)
     dev, dt = sim.state.device, sim.state.dtype
     comm.bounds = None  # equal shares of the checkpoint's particles on this run's ranks
-    local = comm.distribute(fresh_caches(dict(d["arrays"]), branch, changes), first=True)
+    local = comm.distribute(fresh_caches(sim, dict(d["arrays"]), branch, changes), first=True)
     local = {k: v.to(dev) for k, v in local.items()}
     sim.rearm(local, table=lambda: comm.table_at_reference(sim))  # the table as the last rebuild made it
     comm.mark(sim)
@@ -151,10 +152,19 @@ class SlabRun(SerialRun):
     def save(self, sim, path, chash, extra, phys):
         save_global(sim, self.comm, path, chash, extra, phys=phys)
 
-    def state(self, sim):
-        g = self.comm.gather_owned(sim, [f"state.{f}" for f in ("x", "v", "rho", "m", "p", "T", "T_peak", "phase",
-                                                                 "id", "body")])
-        return _state_from(g) if self.root else None
+    def state(self, sim, fields: dict | None = None):
+        """Rank 0: the owned particles of all ranks (and ``fields``' arrays, NaN where a rank
+        does not hold one at this moment), in particle-id order; (None, None) elsewhere."""
+        n = self.comm.n_owned
+        mine = {k: v[:n].cpu().numpy() for k, v in particle_arrays(sim).items() if k.startswith("state.")}
+        mine.update({f"field.{k}": v[:n].cpu().numpy() for k, v in field_values(sim, fields or {}).items()})
+        got = self.comm.c.gather(mine, root=0)
+        if not self.root:
+            return None, None
+        g = {k: np.concatenate([r[k] for r in got]) for k in mine}
+        order = np.argsort(g["state.id"], kind="stable")
+        g = {k: v[order] for k, v in g.items()}
+        return _state_from(g), {k[6:]: torch.as_tensor(v) for k, v in g.items() if k.startswith("field.")}
 
     def deposit_counts(self, sim):
         welded = self.comm.sum([sim.feeder.welded_kg])[0] if sim.feeder is not None else None

@@ -11,7 +11,7 @@ import pytest
 from conftest import CASES, ROOT
 from torchsph.io import read_snapshot
 
-DATASETS = {"position", "velocity", "density", "pressure", "mass", "temperature", "peak_temperature", "phase", "id", "body"}
+DATASETS = {"position", "velocity", "density", "pressure", "mass", "temperature", "peak_temperature", "phase", "id", "body"}  # (torchsph.state.FIELDS)
 
 
 def test_cli_run_writes_outputs(tmp_path):

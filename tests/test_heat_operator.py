@@ -162,7 +162,7 @@ def test_a_checkpoint_without_the_operators_arrays_gets_the_matrix_back_at_the_n
     run_steps(sim, steps=60)
     d = ckpt.snapshot(sim)
     for k in ("steady", "x_op"):
-        d["thermal"][k] = None
+        del d["arrays"][f"th.{k}"]
     d["config_hash"] = ckpt.config_hash(cfg)
     path = tmp_path / "old.pt"
     ckpt.write(d, path)

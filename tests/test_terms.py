@@ -8,6 +8,7 @@ from torchsph import checkpoint as ckpt
 from torchsph import particles
 from torchsph.config import load_case
 from torchsph.runner import make_simulation, run_steps
+from torchsph.state import Array
 from torchsph.terms import TERMS, Term, register
 
 
@@ -18,6 +19,7 @@ def test_a_terms_per_particle_arrays_travel_with_the_particles(tmp_path, monkeyp
     class Tally(Term):
         section = "tally"
         writes = ("heat",)
+        ARRAYS = {"count": Array("heat evaluations")}
 
         @classmethod
         def from_case(cls, cfg, ctx):
@@ -31,8 +33,6 @@ def test_a_terms_per_particle_arrays_travel_with_the_particles(tmp_path, monkeyp
             self.count.index_add_(0, rows, torch.ones_like(rows))
             return torch.zeros(rows.numel(), dtype=sim.state.dtype)
 
-        def arrays(self):
-            return {"count": self.count}
 
     monkeypatch.setitem(TERMS, "tally", Tally)
     _, cfg = load_case(CASES / "radiating_slab")

@@ -26,6 +26,8 @@ import math
 
 import torch
 
+from .state import Array, Holder
+
 
 DENSE_VOXELS = 1 << 24  # voxel grids up to this size are dilated densely (running sums)
 # voxels per dilation radius: a particle is taken in when its voxel is within this many voxels
@@ -87,8 +89,14 @@ def dilate(x: torch.Tensor, seed: torch.Tensor, radius: float) -> torch.Tensor:
     return out.index_fill_(0, box[torch.isin(key, grown)], True)
 
 
-class ActiveSet:
+class ActiveSet(Holder):
     """Seeds, core, active, frontier and work masks of a scene (see the module doc)."""
+
+    array_prefix = "as"
+    put_back_after_selection = False
+    ARRAYS = {"active": Array("in the active set", output="active"),
+              "work": Array("in the work set (the active set and its halo)", output="working"),
+              "frontier": Array("the work set's outer layer")}
 
     def __init__(self, tol: float, ambient: float, support: float, search: float):
         self.tol = tol

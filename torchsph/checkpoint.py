@@ -1,7 +1,8 @@
 """Checkpoints: everything a run needs to continue exactly, written atomically.
 
-A checkpoint holds the particle state, the clock (t, step), the accelerations and rates
-carried between steps, the energy bookkeeping, the neighbour list as it was (so that the
+A checkpoint holds every per-particle array of the registry (:mod:`torchsph.particles`:
+the particle state, the rates carried between steps, the neighbour list's and the physics'
+per-particle caches, under the registry's names), the clock (t, step), the energy bookkeeping, the neighbour list as it was (so that the
 continued run rebuilds pairs at the same steps and sums in the same order: a float64
 restart is bit-for-bit the uninterrupted run), the per-rebuild caches of the physics, the
 torch RNG state, and a hash of the physics part of the case (scene, fluid, thermal,
@@ -16,19 +17,18 @@ import io
 import json
 import os
 import time
-from dataclasses import fields
 from pathlib import Path
 
 import torch
 
 from .io import written
 from .neighbors import NeighbourTable
-from .particles import LAZY_CACHES
-from .state import ParticleState
+from .particles import declared, holders, lazy_caches, particle_arrays, set_particle_arrays
+from .state import FIELDS, ParticleState
 from .terms import available as available_terms
 
 PHYSICS_SECTIONS = ("scene", "fluid", "thermal", "beam", "surface", "numerics")
-FORMAT = 1
+FORMAT = 2  # 2: the per-particle arrays under the registry's names; 1 (read too): by owner
 
 
 class CheckpointError(RuntimeError):
@@ -137,10 +137,13 @@ def _fixed_on_branch(key: str) -> bool:
                                                                 and not key.startswith("scene.source_"))
 
 
-def fresh_caches(arrays: dict, branch: bool, changes: list) -> dict:
-    """``arrays`` less the caches that follow from the physics (:data:`LAZY_CACHES`) where a
-    branch changed it: they are made again from the state, with the branch's physics."""
-    return {k: v for k, v in arrays.items() if k not in LAZY_CACHES} if branch and changes else arrays
+def fresh_caches(sim, arrays: dict, branch: bool, changes: list) -> dict:
+    """``arrays`` less the caches that follow from the physics (the registry's lazy ones) where
+    a branch changed it: they are made again from the state, with the branch's physics."""
+    if not (branch and changes):
+        return arrays
+    lazy = lazy_caches(sim)
+    return {k: v for k, v in arrays.items() if k not in lazy}
 
 
 def check_case(d: dict, cfg: dict, path: str, recorded: dict | None = None, branch: bool = False) -> list[str]:
@@ -210,42 +213,63 @@ def restore_window(th, c: dict, to):
         th.partial_next = False
 
 
+def stored_arrays(sim) -> dict:
+    """The per-particle arrays a checkpoint stores: the registry's, those that belong to the
+    neighbour table included (a restart continues with the same table), as CPU tensors."""
+    case = {k for k, a in declared(sim).items() if a.from_case}
+    return {k: _cpu(v) for k, v in particle_arrays(sim, with_table=True).items() if k not in case}
+
+
 def snapshot(sim) -> dict:
     """The run's full state as a dict of CPU tensors and numbers."""
-    s = sim.state
     d = {
         "format": FORMAT,
-        "state": {f.name: _cpu(getattr(s, f.name)) for f in fields(s)},
+        "arrays": stored_arrays(sim),
         "t": sim.t, "step": sim.step,
-        "dvdt": _cpu(sim.dvdt), "drhodt": _cpu(sim.drhodt),
-        "dTdt": _cpu(sim.dTdt),
         "energy": {k: _cpu(v) if isinstance(v, torch.Tensor) else v for k, v in sim.energy.items()},
         "heat": {k: _cpu(v) for k, v in getattr(sim, "heat_totals", {}).items()},
         "E0": getattr(sim, "E0", None),
         "body_velocity": _cpu(sim.body_velocity),
-        "nl": {"x_ref": _cpu(sim.nl.x_ref), "table": {k: _cpu(v) if isinstance(v, torch.Tensor) else v
-                                                      for k, v in sim.nl.table.state_dict().items()},
-               "n_builds": sim.nl.n_builds, "n_partial": sim.nl.n_partial,
-               "static": _cpu(sim.nl.static), "x_full": _cpu(sim.nl.x_full), "body_ref": _cpu(sim.nl.body_ref),
-               "cross": _cpu(sim.nl.cross)},
+        "nl": {"table": {k: _cpu(v) if isinstance(v, torch.Tensor) else v
+                         for k, v in sim.nl.table.state_dict().items()},
+               "n_builds": sim.nl.n_builds, "n_partial": sim.nl.n_partial},
         "rng": torch.get_rng_state(),
         "stale": sim.stale,
         "plan": {"steps": sim.plan.steps, "sums": sim.plan.sums},
     }
     if sim.active_set is not None:
-        d["active"] = {k: _cpu(v) for k, v in sim.active_set.to_dict().items()}
+        d["active"] = {"n_refresh": sim.active_set.n_refresh, "age": sim.active_set.age}
     th = sim.thermal
     if th is not None:
-        d["thermal"] = {"T_set": _cpu(th.T_set), "steady": _cpu(th.steady), "x_op": _cpu(th.x_op), "zeta": _cpu(th.zeta_cache), "area": _cpu(th.area_cache),
-                        "normal": _cpu(getattr(th, "normal", None)), "lit": _cpu(getattr(th, "lit", None)),
-                        "zeta_ok": _cpu(th.zeta_ok), "area_ok": _cpu(th.area_ok),
-                        "zeta_prev": _cpu(th.zeta_prev), "area_prev": _cpu(th.area_prev),
-                        "normal_prev": _cpu(th.normal_prev), "slow_mark": th.slow_mark, **window_state(th, s.n)}
-    sf = sim.surface_model
-    if sf is not None:
-        d["surface"] = {"normal": _cpu(sf.normal), "kappa": _cpu(sf.kappa)}
-    d["terms"] = {f"{term.section}.{k}": _cpu(v) for term in sim.terms for k, v in term.arrays().items()}
+        d["thermal"] = {"slow_mark": th.slow_mark, **window_state(th, sim.state.n)}
     return d
+
+
+# format 1 (before the registry named every array): where each owner's arrays were kept
+_LEGACY = {"thermal": ("th", {"zeta": "zeta_cache", "area": "area_cache"}), "surface": ("sf", {}),
+           "active": ("as", {}), "nl": ("nl", {})}
+_LEGACY_SCALARS = {"n_refresh", "age", "slow_mark", "partial_next", "fast", "int_rows", "table", "n_builds",
+                   "n_partial"}
+
+
+def arrays_of(d: dict) -> dict:
+    """A checkpoint's per-particle arrays by registry name, whatever its format."""
+    if d.get("format") == FORMAT or "arrays" in d:
+        return d["arrays"]
+    out = {f"state.{k}": v for k, v in d["state"].items()}
+    out.update({k: d[k] for k in ("dvdt", "drhodt", "dTdt") if d.get(k) is not None})
+    for sec, (prefix, renamed) in _LEGACY.items():
+        for k, v in (d.get(sec) or {}).items():
+            if isinstance(v, torch.Tensor) and k not in _LEGACY_SCALARS:
+                out[f"{prefix}.{renamed.get(k, k)}"] = v
+    out.update({k: v for k, v in d.get("terms", {}).items() if v is not None})
+    return out
+
+
+def state_arrays(d: dict) -> dict:
+    """A checkpoint's particle state: field name -> CPU tensor."""
+    a = arrays_of(d)
+    return {k: a[f"state.{k}"] for k in FIELDS}
 
 
 def save(sim, path: str | Path, cfg_hash: str, extra: dict | None = None, phys: dict | None = None):
@@ -308,8 +332,9 @@ def read(path: str | Path) -> dict:
 
 def load(path: str | Path) -> dict:
     d = read(path)
-    if d.get("format") != FORMAT:
-        raise CheckpointError(f"--restart {path}: not a torchsph checkpoint of format {FORMAT}")
+    if d.get("format") not in (1, FORMAT):
+        raise CheckpointError(f"--restart {path}: not a torchsph checkpoint of format {FORMAT} "
+                              f"(format {d.get('format')!r})")
     return d
 
 
@@ -321,67 +346,53 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     made anew, from the state)."""
     changes = check_case(d, cfg, path, recorded, branch) if cfg is not None else []
     dev, dt = sim.state.device, sim.state.dtype
-    st = d["state"]
-    if st["x"].shape[1] != sim.state.dim:
+    arrays = arrays_of(d)
+    x = arrays["state.x"]
+    if x.shape[1] != sim.state.dim:
         raise CheckpointError(f"--restart {path}: dimension differs from the case")
-    if st["x"].dtype != dt:
-        raise CheckpointError(f"--restart {path}: written in {st['x'].dtype}, the run is {dt}")
+    if x.dtype != dt:
+        raise CheckpointError(f"--restart {path}: written in {x.dtype}, the run is {dt}")
 
     def to(t):
         return t.to(dev) if isinstance(t, torch.Tensor) else t
 
-    sim.state = ParticleState(**{k: to(v) for k, v in st.items()})
+    known = declared(sim)
+    arrays = {k: to(v) for k, v in fresh_caches(sim, arrays, branch, changes).items()
+              if k in known and v is not None}  # (a term the case no longer names: its arrays left)
+    # what the selection does not remake (the state, the rates, the table's and the active
+    # set's arrays) goes in first; the per-selection caches are put back after the selection
+    owners = holders(sim)
+    later = tuple(f"{p}." for p, o in owners.items() if o.put_back_after_selection)
+    for k in sim.nl.ARRAYS:  # the neighbour list's as the checkpoint has them (absent: none; older
+        if f"nl.{k}" not in arrays:  # checkpoints: the next rebuild is a full one)
+            sim.nl.set_array(k, None)
+    set_particle_arrays(sim, {k: v for k, v in arrays.items() if not k.startswith(later)})
     sim.t, sim.step = d["t"], d["step"]
-    sim.fluid_mask = sim.state.phase == 0
-    sim.n_fluid = int(sim.fluid_mask.sum())
     sim.body_velocity = to(d["body_velocity"])
     nl = d["nl"]
-    sim.nl.x_ref = to(nl["x_ref"])
     tab = nl.get("table", nl)  # (older checkpoints hold the dense (N, k) table as nl's nb / mask)
     sim.nl.table = NeighbourTable.from_state({k: to(v) if isinstance(v, torch.Tensor) else v
                                               for k, v in tab.items() if k in ("rows", "nb", "mask", "n")})
     sim.nl.n_builds = nl["n_builds"]
     # the partial rebuild's body set (absent in older checkpoints: the next rebuild is a full one)
     sim.nl.n_partial = nl.get("n_partial", 0)
-    sim.nl.static = to(nl["static"]) if nl.get("static") is not None else None
-    sim.nl.x_full = to(nl["x_full"]) if nl.get("x_full") is not None else None
-    # each particle's rigid body at the last build (absent in older checkpoints: every working
-    # particle's displacement is checked until the next build)
-    sim.nl.body_ref = to(nl["body_ref"]) if nl.get("body_ref") is not None else None
-    # the rows that may hold a partner of another body (absent: not known, every row outside the
-    # largest body is read at the restore's selection; the same pairs, found in another order)
-    sim.nl.cross = to(nl["cross"]) if nl.get("cross") is not None else None
     sim.stale = d.get("stale", False)
     if sim.active_set is not None and "active" in d:
-        a = d["active"]
-        sim.active_set.active, sim.active_set.work = to(a["active"]), to(a["work"])
-        sim.active_set.frontier, sim.active_set.n_refresh = to(a["frontier"]), a["n_refresh"]
-        sim.active_set.age = a.get("age", 0)
+        sim.active_set.n_refresh, sim.active_set.age = d["active"]["n_refresh"], d["active"].get("age", 0)
     th = sim.thermal
     if th is not None and th.k.shape[0] != sim.state.n:  # particles were added (a fed wire)
         th.k = torch.full((sim.state.n,), th.prm.conductivity, dtype=dt, device=dev)
     if "plan" in d:
         sim.plan.steps, sim.plan.sums = d["plan"]["steps"], d["plan"]["sums"]
-    sim.dvdt, sim.drhodt, sim.dTdt = to(d["dvdt"]), to(d["drhodt"]), to(d["dTdt"])
     sim.energy = {k: to(v) for k, v in d["energy"].items()}
     if d.get("heat"):
         sim.heat_totals = {k: to(v) for k, v in d["heat"].items()}
     if d.get("E0") is not None:
         sim.E0 = d["E0"]
-    caches = {}
     if th is not None and "thermal" in d:
-        c = d["thermal"]
-        names = {"lit": "lit", "T_set": "T_set", "steady": "steady", "x_op": "x_op", "zeta": "zeta_cache",
-                 "area": "area_cache", "zeta_ok": "zeta_ok", "area_ok": "area_ok", "normal": "normal",
-                 "zeta_prev": "zeta_prev", "area_prev": "area_prev", "normal_prev": "normal_prev"}
-        caches.update({f"th.{a}": to(c[k]) for k, a in names.items() if c.get(k) is not None})
-        th.slow_mark = c.get("slow_mark")  # the slow rows' window, as it was
-    sf = sim.surface_model
-    if sf is not None and "surface" in d:
-        caches.update({f"sf.{k}": to(v) for k, v in d["surface"].items() if v is not None})
-    caches.update({k: to(v) for k, v in d.get("terms", {}).items() if v is not None})
+        th.slow_mark = d["thermal"].get("slow_mark")  # the slow rows' window, as it was
     # pair subsets anew (a function of the table and the phases), the caches as they were
-    sim.rearm(fresh_caches(caches, branch, changes))
+    sim.rearm({k: v for k, v in arrays.items() if k.startswith(later)})
     if th is not None and "thermal" in d:
         restore_window(th, d["thermal"], to)
     torch.set_rng_state(d["rng"])
@@ -389,5 +400,5 @@ def restore(sim, d: dict, cfg: dict | None = None, path: str = "checkpoint", rec
     return {**d.get("extra", {}), "step_control_changes": changes}
 
 
-__all__ = ["STEP_CONTROL", "CheckpointError", "check_case", "config_hash", "differences", "load", "physics",
-           "read", "recorded_physics", "restore", "save", "write"]
+__all__ = ["STEP_CONTROL", "CheckpointError", "arrays_of", "check_case", "config_hash", "differences", "load",
+           "physics", "read", "recorded_physics", "restore", "save", "state_arrays", "write"]

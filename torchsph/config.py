@@ -33,6 +33,10 @@ def _check_value(where: str, key: Key, v, dim: int | None):
         if not isinstance(v, str) or (key.choices is not None and v not in key.choices):
             raise CaseError(bad)
         return v
+    if key.kind == "strs":
+        if not isinstance(v, list) or not all(isinstance(c, str) for c in v):
+            raise CaseError(bad)
+        return list(v)
     if key.kind == "vec":
         if (not isinstance(v, list) or not all(isinstance(c, (int, float)) and not isinstance(c, bool)
                                                for c in v)
@@ -149,6 +153,9 @@ RUN = {
                              doc="time between snapshots (default: t_end / 10)"),
     "dtype": Key("str", default="float64", choices=("float64", "float32"), doc="float precision"),
     "device": Key("str", default="cpu", choices=("cpu", "cuda"), doc="torch device"),
+    "fields": Key("strs", default=[], doc="per-particle arrays of the physics added to every snapshot, by "
+                                          "output name (e.g. \"curvature\", \"enthalpy_rate\", \"surface_area\") "
+                                          "or registry name (e.g. \"sf.kappa\"); the run says which the case offers"),
 }
 
 THERMAL = {

@@ -11,22 +11,7 @@ import h5py
 import numpy as np
 import torch
 
-from .state import ParticleState
-
-# dataset name -> (state field, XDMF attribute type)
-DATASETS = {
-    "position": ("x", None),
-    "velocity": ("v", "Vector"),
-    "density": ("rho", "Scalar"),
-    "pressure": ("p", "Scalar"),
-    "mass": ("m", "Scalar"),
-    "temperature": ("T", "Scalar"),
-    "peak_temperature": ("T_peak", "Scalar"),
-    "phase": ("phase", "Scalar"),
-    "id": ("id", "Scalar"),
-    "body": ("body", "Scalar"),
-}
-
+from .state import FIELDS, ParticleState
 
 class OutputError(RuntimeError):
     """An output file (snapshot, checkpoint, sidecar) could not be written: the message names
@@ -79,20 +64,34 @@ def _as3(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def snapshot_arrays(state: ParticleState) -> dict[str, np.ndarray]:
-    """Fields as numpy arrays ordered by particle id."""
+def _plain(a: np.ndarray) -> np.ndarray:
+    """What a snapshot stores: bool and int8 as int32 (ParaView reads them), vectors as XYZ."""
+    if a.dtype == np.bool_ or a.dtype == np.int8:
+        a = a.astype(np.int32)
+    return _as3(a)
+
+
+def snapshot_arrays(state: ParticleState, extra: dict | None = None) -> dict[str, np.ndarray]:
+    """The state's fields under their dataset names (:data:`torchsph.state.FIELDS`), and
+    ``extra`` (dataset name -> per-particle array in the state's row order: ``[run] fields``),
+    as numpy arrays ordered by particle id."""
     order = torch.argsort(state.id)
-    out = {}
-    for name, (fld, _) in DATASETS.items():
-        a = getattr(state, fld)[order].detach().cpu().numpy()
-        if fld == "phase":
-            a = a.astype(np.int32)
-        out[name] = _as3(a)
+    out = {f.dataset: _plain(getattr(state, k)[order].detach().cpu().numpy()) for k, f in FIELDS.items()}
+    for name, a in (extra or {}).items():
+        a = a[order.to(a.device)].detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)[order.cpu().numpy()]
+        out[name] = _plain(a.reshape(a.shape[0], -1) if a.ndim > 2 else a)
     return out
 
 
-def write_snapshot(path: Path, state: ParticleState, t: float, step: int):
-    arrays = snapshot_arrays(state)
+def layout(arrays: dict[str, np.ndarray]) -> dict[str, tuple[tuple, str]]:
+    """Dataset name -> (shape after the particle axis, numpy dtype name): what the XDMF sidecar
+    describes (:func:`write_xdmf`)."""
+    return {k: (tuple(a.shape[1:]), a.dtype.str) for k, a in arrays.items()}
+
+
+def write_snapshot(path: Path, state: ParticleState, t: float, step: int, extra: dict | None = None) -> dict:
+    """One snapshot file (atomic); returns its :func:`layout`."""
+    arrays = snapshot_arrays(state, extra)
 
     def write(tmp):
         with h5py.File(tmp, "w") as f:
@@ -102,6 +101,7 @@ def write_snapshot(path: Path, state: ParticleState, t: float, step: int):
             for name, a in arrays.items():
                 f.create_dataset(name, data=a)
     written(path, write)
+    return layout(arrays)
 
 
 def read_snapshot(path) -> dict:
@@ -118,26 +118,28 @@ def _dataitem(fname: str, name: str, a_shape, dtype) -> str:
             f'Format="HDF">{fname}:/{name}</DataItem>')
 
 
-def write_xdmf(path: Path, snapshots: list[tuple], float_dtype):
-    """Temporal collection of Polyvertex grids, one per snapshot (t, file, particle count):
-    the count may change between snapshots (a fed wire adds particles)."""
+def write_xdmf(path: Path, snapshots: list[tuple], float_dtype, datasets: dict | None = None):
+    """Temporal collection of Polyvertex grids, one per snapshot (t, file, particle count[,
+    the names of its ``[run] fields``]): the count may change between snapshots (a fed wire
+    adds particles), and so may the fields (a restart may name others). ``datasets``: the
+    snapshots' :func:`layout` (default: the state's fields): (N,) arrays are scalars, (N, 3)
+    vectors, others matrices."""
     fdt = np.dtype(float_dtype)
+    if datasets is None:
+        datasets = {f.dataset: (((3,) if k == "v" else ()), (fdt if f.kind == "float" else
+                                np.dtype(np.int32 if k == "phase" else np.int64)).str) for k, f in FIELDS.items()}
     grids = []
-    for t, fname, n in snapshots:
+    state = {f.dataset for f in FIELDS.values()}
+    for t, fname, n, *more in snapshots:
         attrs = []
-        for name, (fld, atype) in DATASETS.items():
-            if atype is None:
+        extra = set(more[0]) if more else set()
+        for name, (tail, dts) in datasets.items():
+            if name == "position" or (name not in state and name not in extra):
                 continue
-            if fld == "v":
-                shape, dt = (n, 3), fdt
-            elif fld == "phase":
-                shape, dt = (n,), np.dtype(np.int32)
-            elif fld in ("id", "body"):
-                shape, dt = (n,), np.dtype(np.int64)
-            else:
-                shape, dt = (n,), fdt
+            dt = np.dtype(dts)
+            atype = "Vector" if tail == (3,) else "Scalar" if tail == () else "Matrix"
             attrs.append(f'    <Attribute Name="{name}" AttributeType="{atype}" Center="Node">'
-                         f'{_dataitem(fname, name, shape, dt)}</Attribute>')
+                         f'{_dataitem(fname, name, (n, *tail), dt)}</Attribute>')
         grids.append(
             f'   <Grid Name="particles" GridType="Uniform">\n    <Time Value="{t:.10g}"/>\n'
             f'    <Topology TopologyType="Polyvertex" NumberOfElements="{n}" NodesPerElement="1"/>\n'

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 import torch
 
+from .state import Array, Holder
+
 
 @dataclass
 class Domain:
@@ -403,7 +405,7 @@ class NeighbourTable:
         return cls(to(d["rows"]), to(d["nb"]), to(d["mask"]), int(d["n"]))
 
 
-class VerletList:
+class VerletList(Holder):
     """Neighbour table of pairs within ``radius + skin``, rebuilt only when the separation of
     some pair may have changed by more than ``skin`` since the last build (:meth:`due`). Pairs between ``radius`` and
     ``radius + skin`` are kept: compact kernels are exactly zero there.
@@ -426,6 +428,17 @@ class VerletList:
     the working particles, or when particles were added or removed."""
 
     partial_limit = 0.5
+
+    array_prefix = "nl"
+    put_back_after_selection = False
+    ARRAYS = {
+        "x_ref": Array("positions at the last build (the rebuild test's reference)", "m", vector=True),
+        "x_mig": Array("a decomposed run's positions at the last migration", "m", vector=True),
+        "body_ref": Array("each particle's rigid body at the last build (-1: none)"),
+        "static": Array("rows whose mutual pairs with their rigid group the table holds", travels=False),
+        "x_full": Array("positions at the last full build", "m", travels=False, vector=True),
+        "cross": Array("rows that may hold a partner of another body", travels=False),
+    }
 
     def __init__(self, radius: float, skin: float, domain: Domain):
         self.radius = radius

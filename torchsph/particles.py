@@ -7,55 +7,60 @@ migration and ghost refresh, and particle insertion and removal all go through i
 checkpoint restore, a migration and a decomposed restart)."""
 from __future__ import annotations
 
-from dataclasses import fields
-
 import torch
 
-from .state import ParticleState, Phase
+from .schema import CaseError
+from .state import FIELDS, Array, ParticleState, Phase
 
-# per-particle caches built lazily (some processes of a decomposed run may not hold them):
-# where a checkpoint or a migration does not carry one, it is dropped and rebuilt whole
-LAZY_CACHES = frozenset({"th.steady", "th.x_op", "th.zeta_cache", "th.area_cache", "th.normal", "th.zeta_ok",
-                         "th.area_ok", "th.lit", "th.zeta_prev", "th.area_prev", "th.normal_prev",
-                         "sf.normal", "sf.kappa"})
+# the simulation's own per-particle arrays: the rates carried from one step to the next
+RATES = {
+    "dvdt": Array("acceleration at the end of the last step", "m/s^2", output="acceleration", vector=True),
+    "drhodt": Array("density rate of the last continuity sum", "kg/(m^3 s)", output="density_rate"),
+    "dTdt": Array("specific enthalpy rate dh/dt of the last heat evaluation", "W/kg", output="enthalpy_rate"),
+}
 # names written by earlier versions (a global MPI checkpoint stores the registry's names)
 RENAMED = {"th._zeta": "th.zeta_cache", "th._area": "th.area_cache", "th._zeta_ok": "th.zeta_ok",
            "th._area_ok": "th.area_ok", "th._zeta_prev": "th.zeta_prev", "th._area_prev": "th.area_prev",
            "th._normal_prev": "th.normal_prev"}
 
 
-def _owners(sim) -> dict:
-    return {"th": sim.thermal, "sf": sim.surface_model, "as": sim.active_set, "nl": sim.nl,
-            **{term.section: term for term in sim.terms}}
+def holders(sim) -> dict:
+    """Every object of ``sim`` that holds per-particle arrays (:class:`torchsph.state.Holder`),
+    by its prefix: the neighbour list, the active set, the physics and the composable terms
+    (those a scene does not build are absent)."""
+    objs = [sim.nl, sim.thermal, sim.surface_model, sim.active_set, *sim.terms]
+    return {o.array_prefix: o for o in objs if o is not None}
 
 
-def particle_arrays(sim) -> dict[str, torch.Tensor]:
+def declared(sim) -> dict[str, Array]:
+    """The declaration of every per-particle array ``sim`` may hold, by registry name."""
+    d = {f"state.{k}": Array(f.doc, f.unit, output=f.dataset) for k, f in FIELDS.items()}
+    d.update(RATES)
+    for prefix, o in holders(sim).items():
+        d.update({f"{prefix}.{k}": a for k, a in o.ARRAYS.items()})
+    return d
+
+
+def lazy_caches(sim) -> frozenset:
+    """The per-particle caches built lazily (some processes of a decomposed run may not hold
+    them): where a checkpoint or a migration does not carry one, it is dropped and rebuilt
+    whole."""
+    return frozenset(k for k, a in declared(sim).items() if a.lazy)
+
+
+def particle_arrays(sim, with_table: bool = False) -> dict[str, torch.Tensor]:
     """Every per-particle array the step carries from one step to the next, by name (None
-    entries omitted)."""
-    d = {f"state.{f.name}": getattr(sim.state, f.name) for f in fields(sim.state)}
-    d["dvdt"], d["drhodt"], d["dTdt"] = sim.dvdt, sim.drhodt, sim.dTdt
-    d["nl.x_ref"] = sim.nl.x_ref
-    d["nl.x_mig"] = sim.nl.x_mig
-    d["nl.body_ref"] = sim.nl.body_ref
-    th = sim.thermal
-    if th is not None:
-        d.update({"th.k": th.k, "th.T_set": th.T_set, "th.steady": th.steady, "th.x_op": th.x_op,
-                  "th.zeta_cache": th.zeta_cache, "th.area_cache": th.area_cache,
-                  "th.normal": getattr(th, "normal", None), "th.zeta_ok": th.zeta_ok, "th.area_ok": th.area_ok,
-                  # the last rebuild's values, to be reused by the lazy recomputation: carried only
-                  # while it is pending (else unused, and kept out of the per-step ghost refresh)
-                  "th.zeta_prev": th.zeta_prev if th.zeta_cache is None else None,
-                  "th.area_prev": th.area_prev if th.area_cache is None else None,
-                  "th.normal_prev": th.normal_prev if th.area_cache is None else None,
-                  "th.lit": getattr(th, "lit", None)})
-    sf = sim.surface_model
-    if sf is not None:
-        d.update({"sf.normal": sf.normal, "sf.kappa": sf.kappa})
-    a = sim.active_set
-    if a is not None:
-        d.update({"as.active": a.active, "as.work": a.work, "as.frontier": a.frontier})
-    for term in sim.terms:  # the composable terms' own arrays, under their section
-        d.update({f"{term.section}.{k}": v for k, v in term.arrays().items()})
+    entries omitted): the state, the rates and every holder's declared arrays. ``with_table``:
+    also those that belong to the neighbour table (``travels=False``: what a checkpoint of
+    one process keeps with the table)."""
+    d = {f"state.{k}": getattr(sim.state, k) for k in FIELDS}
+    d.update({k: getattr(sim, k) for k in RATES})
+    for prefix, o in holders(sim).items():
+        held = o.arrays()
+        odd = set(held) - set(o.ARRAYS)
+        if odd:
+            raise TypeError(f"{type(o).__name__} holds arrays it does not declare in ARRAYS: {sorted(odd)}")
+        d.update({f"{prefix}.{k}": v for k, v in held.items() if with_table or o.ARRAYS[k].travels})
     return {k: v for k, v in d.items() if v is not None}
 
 
@@ -64,20 +69,54 @@ def set_particle_arrays(sim, d: dict[str, torch.Tensor]):
     st = {k[6:]: v for k, v in d.items() if k.startswith("state.")}
     if st:
         sim.state = ParticleState(**st)
-    owners = _owners(sim)
+    owners = holders(sim)
     for k, v in d.items():
         k = RENAMED.get(k, k)
         if k.startswith("state."):
             continue
-        if k in ("dvdt", "drhodt", "dTdt"):
+        if k in RATES:
             setattr(sim, k, v)
             continue
         owner, name = k.split(".", 1)
-        if owner in ("th", "sf", "as", "nl"):
-            setattr(owners[owner], name, v)
-        else:
-            owners[owner].set_array(name, v)
+        owners[owner].set_array(name, v)
     fluid_set(sim)
+
+
+def output_names(sim) -> dict[str, str]:
+    """What ``[run] fields`` may name: each offered array's output name -> its registry name."""
+    return {a.output: k for k, a in declared(sim).items() if a.output is not None and not k.startswith("state.")}
+
+
+def output_fields(sim, names) -> dict[str, str]:
+    """``[run] fields``: dataset name -> registry name, for each name given (an output name, or
+    a registry name such as ``sf.kappa``); an array this simulation does not hold is refused
+    naming the key, the value and what is allowed."""
+    offered, dec = output_names(sim), declared(sim)
+    out = {}
+    for name in names:
+        if name in offered:
+            out[name] = offered[name]
+        elif name in dec and not name.startswith("state."):
+            out[name] = name
+        else:
+            raise CaseError(f"[run] fields = {list(names)!r}: no per-particle array {name!r} in this case "
+                            f"(allowed: {', '.join(sorted(offered))}, or a registry name: "
+                            f"{', '.join(k for k in dec if not k.startswith('state.'))})")
+    return out
+
+
+def field_values(sim, fields: dict[str, str]) -> dict[str, torch.Tensor]:
+    """The arrays of ``fields`` (:func:`output_fields`) as held now: one not held at this
+    moment (a lazily built cache, not yet built) is NaN on every particle."""
+    held, dec = particle_arrays(sim, with_table=True), declared(sim)
+    out = {}
+    s = sim.state
+    for dataset, key in fields.items():
+        v = held.get(key)
+        if v is None:
+            v = torch.full((s.n, s.dim) if dec[key].vector else (s.n,), float("nan"), dtype=s.dtype, device=s.device)
+        out[dataset] = v
+    return out
 
 
 def rearm(sim, arrays: dict[str, torch.Tensor], table=None):
@@ -91,19 +130,19 @@ def rearm(sim, arrays: dict[str, torch.Tensor], table=None):
     recomputed, the rates kept."""
     arrays = {RENAMED.get(k, k): v for k, v in arrays.items()}
     sim.lim_cache = None  # the limits the last step read were of other particles
-    held = particle_arrays(sim)
+    held = particle_arrays(sim, with_table=True)
     set_particle_arrays(sim, arrays)
-    owners = _owners(sim)
+    owners, lazy = holders(sim), lazy_caches(sim)
     for k in held:
-        if k in LAZY_CACHES and k not in arrays:
+        if k in lazy and k not in arrays:
             owner, name = k.split(".", 1)
-            setattr(owners[owner], name, None)
+            owners[owner].set_array(name, None)
     if sim.thermal is not None:  # (the conduction operator names particles by row)
         sim.thermal.op = None
     if table is not None:
         table()
     sim.select_pairs()
-    caches = ("th.", "sf.") + tuple(f"{term.section}." for term in sim.terms)
+    caches = tuple(f"{p}." for p, o in owners.items() if o.put_back_after_selection)
     set_particle_arrays(sim, {k: v for k, v in arrays.items() if k.startswith(caches)})
     if sim.fluid is not None:
         saved = sim.dvdt.clone()  # (the evaluation may write into the same reused array)

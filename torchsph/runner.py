@@ -10,6 +10,7 @@ from pathlib import Path
 import torch
 
 from . import io as sio
+from . import particles
 from .fluid import FluidParams, WeaklyCompressibleFluid
 from .free_surface import ColourGradient
 from .kernels import make_kernel
@@ -268,9 +269,10 @@ class SerialRun:
                  **({"escape": sim.escape.state_dict()} if sim.escape else {})}
         ckpt.save(sim, path, chash, phys=phys, extra=extra)
 
-    def state(self, sim):
-        """The whole state, in any row order (on the root; None elsewhere)."""
-        return sim.state
+    def state(self, sim, fields: dict | None = None):
+        """(the whole state, ``fields``' arrays in its row order: :func:`torchsph.particles.output_fields`),
+        in any row order (on the root; (None, None) elsewhere)."""
+        return sim.state, particles.field_values(sim, fields or {})
 
     def deposit_counts(self, sim):
         """(welded kg, escaped kg) over processes, or (None, None): the feeder's own."""
@@ -367,9 +369,13 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     deposit = list(resumed.get("deposit", []))  # deposition measures at each snapshot
     wall_before = float(resumed.get("wall_s", 0.0))  # the earlier legs' wall time
 
+    fields = particles.output_fields(sim, run.get("fields", []))  # ([run] fields: refused here if unknown)
+    # dataset -> (shape after the particle axis, dtype) of every snapshot written, earlier legs' too
+    layout = {k: (tuple(v[0]), v[1]) for k, v in resumed.get("layout", {}).items()}
+
     def snapshot():
         welded, escaped = procs.deposit_counts(sim)
-        st = procs.state(sim)
+        st, extra = procs.state(sim, fields)
         if not root:
             return
         if "feeder" in scene.info:
@@ -380,9 +386,9 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
                                    welded_kg=welded, escaped_kg=escaped))
             sio.write_json(out_dir / "deposit.json", deposit)
         name = f"snap_{len(snaps):05d}.h5"
-        sio.write_snapshot(out_dir / name, st, sim.t, sim.step)
-        snaps.append((sim.t, name, st.n))
-        sio.write_xdmf(out_dir / "particles.xdmf", snaps, fdt)
+        layout.update(sio.write_snapshot(out_dir / name, st, sim.t, sim.step, extra))
+        snaps.append((sim.t, name, st.n, tuple(extra)))
+        sio.write_xdmf(out_dir / "particles.xdmf", snaps, fdt, layout)
 
     next_out = [resumed.get("next_out", interval)]
     if restart is None and not estimate:
@@ -396,7 +402,8 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
         steps_left = max(t_end - sim.t, 0.0) / dt_exp
     n_snap = (int(steps_left // every_steps) if every_steps else
               int(max((t_end or sim.t) - sim.t, 0.0) / interval) if math.isfinite(interval) else 0) + 1
-    snap_bytes = n_all * sum(a.nbytes for a in sio.snapshot_arrays(sim.state).values()) / max(sim.state.n, 1)
+    snap_bytes = n_all * sum(a.nbytes for a in sio.snapshot_arrays(
+        sim.state, particles.field_values(sim, fields)).values()) / max(sim.state.n, 1)
     cost = dict(n_all=n_all, n_active=n_act, rss_gb=peak_rss_gb(), ranks=procs.ranks, steps_left=steps_left,
                 dt_s=dt_exp, dt_why=dt_why, snapshots=n_snap, snapshot_bytes=snap_bytes, threads=threads,
                 disk_free=sio.free_bytes(out_dir))
@@ -408,7 +415,7 @@ def run_case(cfg: dict, case_path: Path, out_dir: Path, t_end=None, steps=None, 
     interrupted = [False]
 
     def write_checkpoint():
-        procs.save(sim, ck_path, chash, {"snaps": snaps, "next_out": next_out[0], "deposit": deposit,
+        procs.save(sim, ck_path, chash, {"snaps": snaps, "next_out": next_out[0], "deposit": deposit, "layout": layout,
                                          "wall_s": wall_before + time.perf_counter() - t0}, ckpt.physics(cfg))
 
     by_steps = steps is not None

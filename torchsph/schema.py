@@ -16,7 +16,7 @@ REQUIRED = object()  # the default of a key that has none
 
 @dataclass(frozen=True)
 class Key:
-    kind: str  # float | int | bool | str | vec
+    kind: str  # float | int | bool | str | vec | strs (a list of strings)
     default: Any = REQUIRED
     gt: float | None = None  # value must be > gt
     ge: float | None = None  # value must be >= ge
@@ -30,7 +30,7 @@ class Key:
         if self.choices is not None:
             return "one of " + ", ".join(repr(c) for c in self.choices)
         parts = {"float": "a number", "int": "an integer", "bool": "true or false",
-                 "str": "a string", "vec": "a list of numbers"}[self.kind]
+                 "str": "a string", "vec": "a list of numbers", "strs": "a list of strings"}[self.kind]
         bounds = []
         if self.gt is not None:
             bounds.append(f"> {self.gt:g}")

@@ -21,7 +21,6 @@ from .comm import SerialComm
 from .fluid import Embedded, WeaklyCompressibleFluid
 from .limits import LIMIT_FORMULAS, SimulationError, StepInfo, UnstableStepError  # noqa: F401 (re-exported)
 from .neighbors import Domain, VerletList
-from .particles import LAZY_CACHES  # noqa: F401 (re-exported)
 from .phases import PhaseChange
 from .state import ParticleState, Phase
 from .stats import PlanStats

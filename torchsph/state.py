@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import Any, Callable
 
 import torch
 
@@ -15,8 +16,73 @@ class Phase:
     SOLID = 2  # rigid body that conducts heat (moves kinematically; energy equation only)
 
 
-FLOAT_FIELDS = ("x", "v", "rho", "m", "p", "T", "T_peak")
-INT_FIELDS = ("phase", "id", "body")
+@dataclass(frozen=True)
+class Field:
+    """A field of the particle state: the name a snapshot gives it, its kind, unit and meaning."""
+    dataset: str
+    kind: str  # "float" | "int"
+    unit: str
+    doc: str
+
+
+# the state's fields, declared once: the state's constructor, its conversions, the snapshots
+# (HDF5 and XDMF) and the per-particle array registry (:mod:`torchsph.particles`) read them
+FIELDS = {
+    "x": Field("position", "float", "m", "position (N, d)"),
+    "v": Field("velocity", "float", "m/s", "velocity (N, d)"),
+    "rho": Field("density", "float", "kg/m^3", "density"),
+    "m": Field("mass", "float", "kg", "mass"),
+    "p": Field("pressure", "float", "Pa", "pressure"),
+    "T": Field("temperature", "float", "K", "temperature"),
+    "T_peak": Field("peak_temperature", "float", "K", "the highest temperature reached"),
+    "phase": Field("phase", "int", "", "0 fluid, 1 wall, 2 solid"),
+    "id": Field("id", "int", "", "stable particle id"),
+    "body": Field("body", "int", "", "rigid body (0: none)"),
+}
+
+
+@dataclass(frozen=True)
+class Array:
+    """The declaration of a per-particle array an object holds between steps (first dimension:
+    the particles), read by the registry (:mod:`torchsph.particles`) and so by checkpoints,
+    migration and ghost refresh, particle insertion and removal, and the snapshots.
+
+    ``output``: the name ``[run] fields`` takes it by (and its snapshot dataset); None: not
+    offered. ``lazy``: a cache built from the state when first needed (where a checkpoint or a
+    migration does not carry it, it is dropped and built again). ``travels``: False for an
+    array that belongs to the neighbour table that made it (a one-process checkpoint keeps it
+    with the table; a migration, a particle removal or another rank count drops it, and the
+    next build is a full one). ``from_case``: made from the case at set-up and extended as
+    particles are added: a checkpoint does not store it (a restart or a branch takes the case's).
+    ``vector``: (N, d), else (N,). ``when``: carried only while ``when(holder)`` is true."""
+    doc: str
+    unit: str = ""
+    output: str | None = None
+    lazy: bool = False
+    travels: bool = True
+    from_case: bool = False
+    vector: bool = False
+    when: Callable[[Any], bool] | None = None
+
+
+class Holder:
+    """An object that holds per-particle arrays: it declares them (``ARRAYS``: name ->
+    :class:`Array`, held as the attribute of that name) under a prefix (``array_prefix``;
+    the registry names them ``PREFIX.NAME``). ``put_back_after_selection``: the holder's
+    arrays are per-selection caches, put back after a re-armed simulation selects its pairs."""
+
+    array_prefix: str = ""
+    ARRAYS: dict[str, Array] = {}
+    put_back_after_selection: bool = True
+
+    def arrays(self) -> dict[str, Any]:
+        """The declared arrays as held now (None: not held)."""
+        return {k: getattr(self, k, None) for k, a in self.ARRAYS.items() if a.when is None or a.when(self)}
+
+    def set_array(self, name: str, value) -> None:
+        if name not in self.ARRAYS:
+            raise KeyError(f"{type(self).__name__} declares no array {name!r} (it declares {', '.join(self.ARRAYS)})")
+        setattr(self, name, value)
 
 
 @dataclass
@@ -66,12 +132,8 @@ class ParticleState:
         return self.x.device
 
     def to(self, device=None, dtype=None) -> "ParticleState":
-        kw = {}
-        for name in FLOAT_FIELDS:
-            kw[name] = getattr(self, name).to(device=device, dtype=dtype)
-        for name in INT_FIELDS:
-            kw[name] = getattr(self, name).to(device=device)
-        return ParticleState(**kw)
+        return ParticleState(**{name: getattr(self, name).to(device=device, dtype=dtype if f.kind == "float" else None)
+                                for name, f in FIELDS.items()})
 
     def clone(self) -> "ParticleState":
         return ParticleState(**{f.name: getattr(self, f.name).clone() for f in fields(self)})

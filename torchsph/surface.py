@@ -31,7 +31,7 @@ from .comm import SerialComm
 from .fluid import dot, embed, gather_nb, outer_sum, pair_dwdr_r, pair_geometry, pair_sum, tiny
 from .kernels import Kernel
 from .neighbors import Domain
-from .state import ParticleState, Phase
+from .state import Array, Holder, ParticleState, Phase
 from .free_surface import ColourGradient, SelectionArrays
 from .thermal import flat_surface_layers
 from .wetting import ContactAngle
@@ -105,8 +105,14 @@ def smoothed_pairs(x, f, w, m, rho, rows, nb, mask, kernel: Kernel, h: float, do
     return num / (Wk.sum(1) + self_w).clamp_min(tiny(Wk)).unsqueeze(-1)
 
 
-class SurfaceForces:
+class SurfaceForces(Holder):
     """CSF surface tension, Marangoni and recoil forces on the free-surface fluid particles."""
+
+    array_prefix = "sf"
+    ARRAYS = {"normal": Array("outward surface normal of the last evaluation (0 off the surface)",
+                              output="surface_normal", lazy=True, vector=True),
+              "kappa": Array("curvature of the last evaluation (0 off the surface)", "1/m", output="curvature",
+                             lazy=True)}
 
     def __init__(self, params: SurfaceParams, kernel: Kernel, h: float, domain: Domain,
                  h_over_dx: float, vapour_pressure=None, compile: bool = False,

@@ -20,7 +20,27 @@ from .beam import BeamPlan, beams_power, in_beam, reachable
 from .heat_operator import ENTRY_BLOCK, ConductionOperator, SlowSplit, by_rows, row_entries
 from .kernels import Kernel
 from .neighbors import Domain
-from .state import ParticleState, Phase
+from .state import Array, Holder, ParticleState, Phase
+
+# the conduction's per-particle arrays (the registry, torchsph.particles, carries them)
+CONDUCTION_ARRAYS = {
+    "k": Array("thermal conductivity", "W/(m K)", output="conductivity", from_case=True),
+    "T_set": Array("the walls' prescribed temperature", "K"),
+    "steady": Array("solid with no phase change since the conduction matrix was made", lazy=True),
+    "x_op": Array("the positions the conduction matrix was made at", "m", lazy=True, vector=True),
+    "zeta_cache": Array("the Laplacian's normalisation zeta at the last selection", lazy=True),
+    "area_cache": Array("free-surface area of the losses at the last selection (0 off the surface)", "m^2",
+                        output="surface_area", lazy=True),
+    "normal": Array("outward normal of the losses' surface", lazy=True, vector=True),
+    "zeta_ok": Array("rows whose zeta is up to date", lazy=True),
+    "area_ok": Array("rows whose area is up to date", lazy=True),
+    # the last rebuild's values, reused by the lazy recomputation: carried only while it is
+    # pending (else unused, and kept out of the per-step ghost refresh)
+    "zeta_prev": Array("zeta at the rebuild before", lazy=True, when=lambda th: getattr(th, "zeta_cache", None) is None),
+    "area_prev": Array("area at the rebuild before", "m^2", lazy=True, when=lambda th: getattr(th, "area_cache", None) is None),
+    "normal_prev": Array("normal at the rebuild before", lazy=True, vector=True, when=lambda th: getattr(th, "area_cache", None) is None),
+    "lit": Array("lit by a beam at the last evaluation", output="lit", lazy=True),
+}
 
 
 @dataclass
@@ -366,12 +386,13 @@ class Inversion:
         return self.T if self.bad is None else fix_temperature(self.H, self.prm, 0.0, self.T, self.bad)
 
 
-class Conduction:
+class Conduction(Holder):
     """Heat conduction for all non-wall particles. Wall particles are fixed-temperature
     (Dirichlet) boundaries: like the no-slip velocity of Adami et al. (2012), a wall
     particle takes the mirrored value T_w = 2 T_set - <T>_w (Shepard average of its
     conducting neighbours), so that the prescribed temperature holds on the wall surface
     between the last solid and the first wall layer rather than at the wall particles."""
+    array_prefix, ARRAYS = "th", CONDUCTION_ARRAYS
 
     def __init__(self, params: ThermalParams, kernel: Kernel, h: float, domain: Domain,
                  conductivity: torch.Tensor, compile: bool = False, beams=(), dx: float = 0.0,
@@ -451,8 +472,7 @@ class Conduction:
     # melts marks the particle; particles added (a fed wire's layer) give old rows new
     # neighbours of their own body, so the next rebuild recomputes every row.
     zeta_ok = area_ok = None  # per particle: the cached value holds and was computed rigid
-    steady = None  # per particle: solid with no phase change since the conduction matrix was made
-    x_op = None  # per particle: the positions the conduction matrix was made at
+    steady = x_op = None  # per particle (CONDUCTION_ARRAYS): made with the conduction matrix
     zeta_prev = area_prev = normal_prev = None
 
     def forget_geometry(self):

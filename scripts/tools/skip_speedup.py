@@ -38,7 +38,8 @@ def measures(out: Path) -> dict:
     ck = out / "checkpoint.pt"
     if ck.exists():
         import torch
-        mass = torch.load(ck, map_location="cpu", weights_only=False)["state"]
+        from torchsph.checkpoint import read, state_arrays
+        mass = state_arrays(read(ck))
         order = torch.argsort(mass["id"])
         mass = mass["m"][order].numpy()
     V = vol * mass

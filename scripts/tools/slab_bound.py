@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from torchsph.checkpoint import load  # noqa: E402
+from torchsph.checkpoint import arrays_of, load, state_arrays  # noqa: E402
 
 
 def best_cut(x: np.ndarray, w: np.ndarray, halo: float, cuts: int = 800):
@@ -48,10 +48,10 @@ def main():
     from parallel.slab import halo_parts
 
     own = halo_parts(cfg)["halo"]
-    st = d["state"]
+    st, arrays = state_arrays(d), arrays_of(d)
     x = st["x"][:, a.axis].double().numpy()
     fluid = (st["phase"] == 0).numpy()
-    active = d["active"]["active"].numpy() if "active" in d else np.ones_like(fluid)
+    active = arrays["as.active"].numpy() if "as.active" in arrays else np.ones_like(fluid)
     w = np.where(fluid, 4.0, np.where(active, 1.0, 0.0))
     print(f"# {a.checkpoint}: t = {d['t']:.4g} s, {x.size} particles, {int(active.sum())} active, {int(fluid.sum())} fluid; "
           f"worked span along axis {a.axis}: {x[w > 0].min() * 1e3:.2f} .. {x[w > 0].max() * 1e3:.2f} mm")

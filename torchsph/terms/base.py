@@ -8,9 +8,11 @@ A term declares
   (``"heat"``: W per particle into the energy equation; ``"acceleration"``: m/s^2 into the
   momentum equation);
 - its time-step limits (``limits``, seconds, with ``limit_formulas`` for the messages);
-- its per-particle arrays (``arrays`` / ``set_array`` / ``add_particles``), which the one
-  array registry (:mod:`torchsph.particles`) carries through checkpoints, MPI migration and
-  ghost refresh, and particle insertion and removal;
+- its per-particle arrays (``ARRAYS``: name -> :class:`~torchsph.state.Array`, held as the
+  attributes of those names; ``add_particles`` extends them), which the one array registry
+  (:mod:`torchsph.particles`) carries, as ``SECTION.NAME``, through checkpoints, MPI migration
+  and ghost refresh, particle insertion and removal, and into the snapshots where an array
+  declares an ``output`` name and ``[run] fields`` names it;
 - for a heat source, ``seeds``: the particles it heats, which the active set keeps in the work.
 
 A term that a case does not name is never built, so it costs nothing. The step calls the
@@ -25,6 +27,7 @@ from typing import Any
 import torch
 
 from ..schema import Key
+from ..state import Array, Holder  # noqa: F401 (Array re-exported: a term declares its arrays with it)
 
 RATES = ("heat", "acceleration")
 
@@ -42,7 +45,7 @@ class TermContext:
     device: Any
 
 
-class Term:
+class Term(Holder):
     """Base class of a composable physics term (see the module doc)."""
 
     section: str = ""
@@ -83,12 +86,10 @@ class Term:
         """Time-step limits (s): numbers, or 0-d device tensors (read with the others at once)."""
         return {}
 
-    def arrays(self) -> dict[str, torch.Tensor]:
-        """Per-particle arrays carried from one step to the next (first dimension: particles)."""
-        return {}
-
-    def set_array(self, name: str, value: torch.Tensor) -> None:
-        setattr(self, name, value)
+    @property
+    def array_prefix(self) -> str:
+        """The registry names this term's arrays ``SECTION.NAME``."""
+        return self.section
 
     def add_particles(self, new) -> None:
         """Extend the per-particle arrays for particles appended to the state."""
