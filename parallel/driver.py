@@ -9,10 +9,11 @@ import sys
 
 import numpy as np
 
-from torchsph.config import load_case
-from torchsph.runner import make_simulation, run_steps
+from torchsph.io.config import load_case
+from torchsph.run.build import make_simulation
+from torchsph.step.loop import run_steps
 
-from .slab import install_abort_hook, make_comm
+from .setup import install_abort_hook, make_comm
 
 
 def main(argv=None):

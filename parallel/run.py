@@ -20,13 +20,14 @@ import numpy as np
 import torch
 from mpi4py import MPI
 
-from torchsph.checkpoint import FORMAT as ckpt_format
-from torchsph.checkpoint import CheckpointError, check_case, fresh_caches, read, recorded_physics, write
-from torchsph.particles import field_values, particle_arrays
-from torchsph.runner import SerialRun, make_simulation, run_case
-from torchsph.state import ParticleState
+from torchsph.core.state import ParticleState
+from torchsph.io.checkpoint import FORMAT as ckpt_format
+from torchsph.io.checkpoint import CheckpointError, check_case, fresh_caches, read, recorded_physics, write
+from torchsph.run.build import make_simulation
+from torchsph.run.runner import SerialRun, run_case
+from torchsph.step.particles import field_values, particle_arrays
 
-from .slab import install_abort_hook, make_comm
+from .setup import install_abort_hook, make_comm
 
 FORMAT = "global-1"
 GLOBAL_SUMS = ("energy", "heat", "E0")  # per-rank partial sums: a checkpoint holds their totals
@@ -68,7 +69,7 @@ def global_from_single(d: dict, cfg: dict, path: str, recorded: dict | None = No
     """A one-process checkpoint as a global one: restored into a one-process simulation of
     the same case (every rank alike), its per-particle arrays and totals taken from there.
     A run started in one process continues on any number of ranks."""
-    from torchsph import checkpoint as ckpt
+    from torchsph.io import checkpoint as ckpt
 
     _, one = make_simulation(cfg)
     extra = ckpt.restore(one, d, cfg, path, recorded, branch)
@@ -129,7 +130,7 @@ def restore_global(sim, comm, d: dict, cfg: dict, path: str, recorded: dict | No
 
 
 class SlabRun(SerialRun):
-    """The run loop's processes over MPI ranks (:func:`torchsph.runner.run_case` with
+    """The run loop's processes over MPI ranks (:func:`torchsph.run.runner.run_case` with
     ``procs=SlabRun(...)``): rank 0 writes, every rank takes part in the collectives."""
 
     def __init__(self, cfg: dict):
@@ -202,7 +203,7 @@ class SlabRun(SerialRun):
 
 
 def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, device=None, **kw) -> dict | None:
-    """:func:`torchsph.runner.run_case` on the ranks of MPI.COMM_WORLD; rank 0 returns the
+    """:func:`torchsph.run.runner.run_case` on the ranks of MPI.COMM_WORLD; rank 0 returns the
     summary, the others None. GPU: each rank takes ``cuda:(rank % device_count)``."""
     install_abort_hook()
     run = cfg["run"]
@@ -211,7 +212,7 @@ def run_case_mpi(cfg: dict, case_path: Path, out_dir: Path, device=None, **kw) -
     procs = SlabRun(cfg)
     if run["device"] == "cuda":
         if not torch.cuda.is_available():
-            from torchsph.config import CaseError
+            from torchsph.io.config import CaseError
             raise CaseError("[run] device = \"cuda\": no CUDA device is available here (use cpu)")
         run["device"] = f"cuda:{procs.comm.rank % torch.cuda.device_count()}"
     fail_rank = int(os.environ.get("TORCHSPH_TEST_RAISE_RANK", "-1"))  # tests: one rank raises

@@ -20,32 +20,15 @@ working solid and idle solid fitted to the ranks' measured work, :meth:`SlabComm
 from __future__ import annotations
 
 import math
-import sys
 import time
-import traceback
 
 import numpy as np
 import torch
 from mpi4py import MPI
 
-from torchsph.particles import fluid_set
+from torchsph.step.particles import fluid_set
 
 STATE_PREFIX = "state."
-
-
-def install_abort_hook(comm=None):
-    """An uncaught exception on any rank prints the rank and the error and aborts all ranks
-    (no rank is left waiting in a collective)."""
-    comm = comm or MPI.COMM_WORLD
-
-    def hook(tp, val, tb):
-        sys.stderr.write(f"torchsph rank {comm.Get_rank()}/{comm.Get_size()}: "
-                         + "".join(traceback.format_exception(tp, val, tb)))
-        sys.stderr.flush()
-        time.sleep(0.5)  # let mpiexec forward the message before the abort ends every rank
-        comm.Abort(1)
-
-    sys.excepthook = hook
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -99,7 +82,7 @@ def common_arrays(comm, sim):
 
 
 class SlabComm:
-    """The :class:`torchsph.comm.SerialComm` interface over MPI ranks (see the module doc)."""
+    """The :class:`torchsph.step.comm.SerialComm` interface over MPI ranks (see the module doc)."""
 
     def __init__(self, search: float, skin: float, stages: int = 3, comm=None,
                  rebalance_every: int = 0, weights: dict | None = None, slack_skins: float = 4.0):
@@ -291,7 +274,7 @@ class SlabComm:
         """New local arrays: this rank's owned particles (rows of ``arrays`` it owns now, or
         with ``first`` the whole replicated set) sent to their slab's rank, then the ghosts.
         Returns the new arrays; sets n_owned and the send / receive lists. ``domain``: the
-        scene's (:class:`torchsph.neighbors.Domain`), once: a periodic x axis makes the end
+        scene's (:class:`torchsph.core.neighbors.Domain`), once: a periodic x axis makes the end
         slabs each other's neighbours."""
         if domain is not None and domain.periodic[0]:
             self.period = (float(domain.lo[0]), float(domain.length[0]))
@@ -396,7 +379,8 @@ def _claim(comm, sim, new):
     owns, then copies of the ones other ranks own within this rank's halo (ghosts from
     the start, so no rank misses a neighbour until the next migration)."""
     from dataclasses import fields as dc_fields
-    from torchsph.state import ParticleState
+
+    from torchsph.core.state import ParticleState
 
     x = _np(new.x)[:, 0]
     dest = np.searchsorted(comm.bounds, x, side="right") - 1
@@ -438,38 +422,6 @@ def _place_new(comm, sim, k):
         comm.recv[q] = torch.cat([comm.recv[q], add])
         comm.send[q] = torch.cat([comm.send[q], torch.as_tensor(owned0 + comm._new["send"][q], dtype=torch.long)])
     return perm
-
-
-def halo_parts(cfg: dict) -> dict:
-    """The halo of a validated case: the search radius, the skin, the neighbour-dependent
-    stages of one step (3 search radii; 5 with free-surface forces, 7 with a contact angle)
-    and the slack for the motion between migrations; ``halo`` their total (m)."""
-    from torchsph.kernels import make_kernel
-
-    nm = cfg["numerics"]
-    dx = cfg["scene"].get("dx_m")
-    if dx is None:  # scenes that give a count instead of a spacing: build once to learn dx
-        from torchsph.scenes import build_scene
-        dx = build_scene(cfg).dx
-    h = nm["h_over_dx"] * dx
-    kernel = make_kernel(nm["kernel"], cfg["scene"]["dim"])
-    skin = nm["skin_over_dx"] * dx
-    stages = 3
-    if "surface" in cfg:  # colour -> normals -> smoothed normals -> curvature -> force
-        stages = 5
-        if cfg["surface"].get("contact_angle_deg") is not None and cfg["surface"].get("wetting", True):
-            stages = 7  # the contact line reads the curvature beside it, and spreads its force
-    slack = nm.get("migration_slack_over_skin", 4.0)
-    search = kernel.radius(h) + skin
-    return {"search": search, "skin": skin, "stages": stages, "slack_skins": slack,
-            "halo": stages * search + skin * (1.0 + slack)}
-
-
-def make_comm(cfg: dict, comm=None) -> SlabComm:
-    """A SlabComm for a validated case (:func:`halo_parts`)."""
-    hp = halo_parts(cfg)
-    return SlabComm(hp["search"], hp["skin"], stages=hp["stages"], comm=comm,
-                    rebalance_every=cfg["numerics"].get("rebalance_every", 0), slack_skins=hp["slack_skins"])
 
 
 def _positions_from_owners(comm, sim):

@@ -20,11 +20,11 @@ bins' spread along the track ((max - min) / mean: a steady bead is the same alon
 window against the nominal feed (the feed waits on contact) and the bead's error against the
 area of the wire actually fed (so that a wait is not counted as a resolution error); from the last
 snapshot the bead's mean width, height, penetration and toe angle over the solidified range
-behind the wire (torchsph.post.bead_profile); the melt pool's length, width and depth at the
+behind the wire (torchsph.post.analysis.bead_profile); the melt pool's length, width and depth at the
 end; the peak temperature; the share of the fed wire that lies on the substrate (the
 deposit's mass over the mass fed); the time the feed waited on contact. Then each column's
 value extrapolated to dx -> 0 (Richardson from the three finest, with the observed order;
-torchsph.post.richardson) and each row's difference from it; the two finest rows' difference
+torchsph.post.analysis.richardson) and each row's difference from it; the two finest rows' difference
 per column, and the spacing at which rungs of their ratio would differ by less than 10 % (from
 the order and the limit). Unfinished runs are listed with the time they reached and left out
 of the table. --plot draws the bead's error
@@ -44,8 +44,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from torchsph.io import read_snapshot  # noqa: E402
-from torchsph.post import (bead_profile, bead_settling, default_steady_range, load_run,  # noqa: E402
+from torchsph.io.snapshots import read_snapshot  # noqa: E402
+from torchsph.post.analysis import (bead_profile, bead_settling, default_steady_range, load_run,  # noqa: E402
                            nominal_wire_fed_kg, richardson, steady_average)
 
 COLUMNS = [  # key, header, format, extrapolated

@@ -16,7 +16,7 @@ def _seed():
 
 @pytest.fixture(autouse=True)
 def _threads():
-    """A test that runs the command line sets torch's threads from the load (torchsph/threads.py):
+    """A test that runs the command line sets torch's threads from the load (torchsph/run/threads.py):
     put them back, so that no later test runs on another count."""
     n = torch.get_num_threads()
     yield
@@ -26,9 +26,9 @@ def _threads():
 def assert_blow_up_diagnosed(case, overrides, limit, factor, max_steps, parts):
     """Step ``case`` at ``factor`` x its ``limit`` until it stops; the one-line diagnosis
     must contain every string in ``parts``."""
-    from torchsph.config import load_case
-    from torchsph.runner import make_simulation
-    from torchsph.simulation import SimulationError
+    from torchsph.io.config import load_case
+    from torchsph.run.build import make_simulation
+    from torchsph.step.simulation import SimulationError
 
     _, cfg = load_case(CASES / case, overrides)
     _, sim = make_simulation(cfg)

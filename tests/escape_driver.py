@@ -14,7 +14,7 @@ import torch
 def fling(sim, ids):
     """Make the particles ``ids`` melt drops flung out of the scene: half 3 mm below the
     substrate falling, half 3 mm beside it flying off (their rows on every process alike)."""
-    from torchsph.state import Phase
+    from torchsph.core.state import Phase
 
     s, box = sim.state, sim.escape
     rows = torch.nonzero(torch.isin(s.id, ids)).squeeze(1)
@@ -32,8 +32,9 @@ def fling(sim, ids):
 
 
 def run(case, k1, k2, overrides, comm=None):
-    from torchsph.config import load_case
-    from torchsph.runner import make_simulation, run_steps
+    from torchsph.io.config import load_case
+    from torchsph.run.build import make_simulation
+    from torchsph.step.loop import run_steps
 
     _, cfg = load_case(case, overrides)
     scene, sim = make_simulation(cfg, comm=comm)
@@ -47,8 +48,8 @@ def run(case, k1, k2, overrides, comm=None):
 def main(argv):
     import numpy as np
 
-    from parallel.slab import install_abort_hook, make_comm
-    from torchsph.config import load_case
+    from parallel.setup import install_abort_hook, make_comm
+    from torchsph.io.config import load_case
 
     case, k1, k2, out, overrides = argv[0], int(argv[1]), int(argv[2]), argv[3], argv[4:]
     install_abort_hook()

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import torch
 
-from torchsph.state import Array
-from torchsph.terms import Term, register
+from torchsph.core.state import Array
+from torchsph.physics.terms import Term, register
 
 
 @register

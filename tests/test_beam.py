@@ -4,8 +4,8 @@ import math
 import pytest
 import torch
 
-from torchsph.beam import Beam, beam_power, beams_power, gaussian_fraction_in_strip, reachable
-from torchsph.scenes import lattice
+from torchsph.physics.beam import Beam, beam_power, beams_power, gaussian_fraction_in_strip, reachable
+from torchsph.scenes.builders import lattice
 
 Q0, ETA, R = 300.0, 0.85, 0.75e-3
 
@@ -90,8 +90,10 @@ def test_beam_heating_energy_bookkeeping_closes():
     """Heating a plate with a beam (latent heat on): absorbed power = eta0 Q0 within 1 % and
     stored energy = absorbed energy (the bookkeeping integrates exactly what the step does)."""
     from conftest import CASES
-    from torchsph.config import load_case
-    from torchsph.runner import make_simulation, run_steps
+
+    from torchsph.io.config import load_case
+    from torchsph.run.build import make_simulation
+    from torchsph.step.loop import run_steps
 
     _, cfg = load_case(CASES / "beam_plate", ["run.t_end_s=0.02"])
     _, sim = make_simulation(cfg)
@@ -113,8 +115,8 @@ def test_beam_on_lattice_columns_at_bin_edges_keeps_its_power():
 
     import torch
 
-    from torchsph.beam import Beam, beam_power
-    from torchsph.scenes import lattice
+    from torchsph.physics.beam import Beam, beam_power
+    from torchsph.scenes.builders import lattice
 
     for n in (25, 24, 20):
         L = 2.5e-3

@@ -12,9 +12,9 @@ import pytest
 import torch
 from conftest import CASES, ROOT
 
-from torchsph import checkpoint as ckpt
-from torchsph.config import load_case
-from torchsph.runner import run_case
+from torchsph.io import checkpoint as ckpt
+from torchsph.io.config import load_case
+from torchsph.run.runner import run_case
 
 
 def final_state(path):
@@ -204,8 +204,8 @@ def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_last_checkpoint(tmp
 
     import h5py
 
-    from torchsph import io as sio
     from torchsph.__main__ import main
+    from torchsph.io import snapshots as sio
 
     base = [str(CASES / "poiseuille_2d"), "--out", str(tmp_path), "--quiet", "--set", "scene.n_height=20",
             "--set", "run.output_interval_s=1e-5"]

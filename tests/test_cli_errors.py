@@ -2,8 +2,8 @@
 an output folder that is a file or cannot be written, a damaged checkpoint, a wrong --set
 (named as --set, not as the case file), a fixed dt above a stability limit."""
 import pytest
-
 from conftest import CASES
+
 from torchsph.__main__ import main
 
 POIS = [str(CASES / "poiseuille_2d"), "--quiet", "--set", "scene.n_height=20"]

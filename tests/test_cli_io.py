@@ -7,11 +7,11 @@ import xml.etree.ElementTree as ET
 import h5py
 import numpy as np
 import pytest
-
 from conftest import CASES, ROOT
-from torchsph.io import read_snapshot
 
-DATASETS = {"position", "velocity", "density", "pressure", "mass", "temperature", "peak_temperature", "phase", "id", "body"}  # (torchsph.state.FIELDS)
+from torchsph.io.snapshots import read_snapshot
+
+DATASETS = {"position", "velocity", "density", "pressure", "mass", "temperature", "peak_temperature", "phase", "id", "body"}  # (torchsph.core.state.FIELDS)
 
 
 def test_cli_run_writes_outputs(tmp_path):
@@ -80,8 +80,8 @@ def test_estimate_projects_the_steps_of_the_run(tmp_path):
     writes nothing, and projects its probe's time per step over those steps. How close the
     projected wall time comes to the real one is measured, not tested (tests assert no wall-clock
     times): `python scripts/tools/cost_table.py cases/poiseuille_2d --against-run`."""
-    from torchsph.config import load_case
-    from torchsph.runner import run_case
+    from torchsph.io.config import load_case
+    from torchsph.run.runner import run_case
 
     _, cfg = load_case(CASES / "poiseuille_2d", ["scene.n_height=40"])
     est = run_case(cfg, CASES / "poiseuille_2d", tmp_path / "est", t_end=0.03, progress=False, estimate=True)
@@ -97,8 +97,8 @@ def test_estimate_projects_the_steps_of_the_run(tmp_path):
 def test_the_cost_block_says_when_the_snapshots_outgrow_the_free_disk(tmp_path):
     """The cost block gives the disk's free space beside the snapshots' size, and warns (once,
     before the probe) when they need more than there is."""
-    from torchsph import io as sio
-    from torchsph.progress import projection_lines
+    from torchsph.io import snapshots as sio
+    from torchsph.run.progress import projection_lines
 
     free = sio.free_bytes(tmp_path / "not" / "made" / "yet")  # (the nearest existing folder's disk)
     assert free is not None and free > 0
@@ -115,7 +115,7 @@ def test_the_cost_block_says_when_the_snapshots_outgrow_the_free_disk(tmp_path):
 def test_the_projection_says_it_is_a_lower_bound_where_melt_is_to_come():
     """A probe taken before the melt (the step limit is the melt's, "once melt flows") or
     where heat will spread over more particles projects too little: the line says why."""
-    from torchsph.progress import projection_lines
+    from torchsph.run.progress import projection_lines
 
     kw = dict(n_all=1000, n_active=1000, rss_gb=0.1, ranks=1, steps_left=100.0, dt_s=1e-4, snapshots=1,
               snapshot_bytes=1.0, probe=(10, 1.0))

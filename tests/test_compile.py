@@ -1,5 +1,5 @@
 """The step between neighbour rebuilds compiles whole: ``torch.compile(fullgraph=True)``
-traces each of its two halves (:mod:`torchsph.step`: everything between the step's two host
+traces each of its two halves (:mod:`torchsph.step.integrator`: everything between the step's two host
 reads) on a small deposition scene with melt, beams, surface losses, surface forces, phase
 change and a fed wire; the compiled steps reproduce the eager steps; a plain step is never
 traced again (neither dt nor the pair counts specialise it), and once the first rebuild and
@@ -7,11 +7,11 @@ feed have made the sizes dynamic, a rebuild is not either.
 A graph break anywhere in a half fails the test (that is what fullgraph=True means)."""
 import pytest
 import torch
-
-from torchsph import step
-from torchsph.runner import make_simulation, run_steps
-
 from test_deposition import small
+
+from torchsph.run.build import make_simulation
+from torchsph.step import integrator as step
+from torchsph.step.loop import run_steps
 
 dynamo = pytest.importorskip("torch._dynamo")
 

@@ -3,9 +3,9 @@ import subprocess
 import sys
 
 import pytest
-
 from conftest import CASES, ROOT
-from torchsph.config import load_raw, CaseError, load_case
+
+from torchsph.io.config import CaseError, load_case, load_raw
 
 GOOD = (CASES / "taylor_green_2d" / "case.toml").read_text()
 
@@ -163,12 +163,12 @@ def test_the_parameter_classes_are_filled_from_the_schema():
     case sets), and a case's values arrive unchanged."""
     from dataclasses import fields
 
-    from torchsph.config import FLUID, SURFACE, THERMAL
-    from torchsph.fluid import FluidParams
-    from torchsph.schema import params
-    from torchsph.surface import SurfaceParams
-    from torchsph.thermal import SurfaceLosses, ThermalParams
-
+    from torchsph.core.schema import params
+    from torchsph.io.config import FLUID, SURFACE, THERMAL
+    from torchsph.physics.enthalpy import ThermalParams
+    from torchsph.physics.fluid import FluidParams
+    from torchsph.physics.losses import SurfaceLosses
+    from torchsph.physics.surface import SurfaceParams
     fixed = {FluidParams: {"density_diffusion", "shifting"}, SurfaceLosses: {"sticking"}}
     for cls, schema in ((FluidParams, FLUID), (ThermalParams, THERMAL), (SurfaceLosses, THERMAL),
                         (SurfaceParams, SURFACE)):

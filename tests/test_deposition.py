@@ -4,16 +4,16 @@ from pathlib import Path
 
 import pytest
 import torch
-
-from torchsph import checkpoint as ckpt
-from torchsph.config import CaseError, load_case
-from torchsph.deposition import WIRE, measure
-from torchsph.runner import make_simulation, run_steps
-from torchsph.post import nominal_wire_fed_kg
-from torchsph.scenes import case_beams
-from torchsph.state import Phase
-
 from escape_driver import fling
+
+from torchsph.core.state import Phase
+from torchsph.io import checkpoint as ckpt
+from torchsph.io.config import CaseError, load_case
+from torchsph.post.analysis import nominal_wire_fed_kg
+from torchsph.run.build import make_simulation
+from torchsph.scenes.builders import case_beams
+from torchsph.scenes.deposition import WIRE, measure
+from torchsph.step.loop import run_steps
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE = ROOT / "cases" / "perpendicular_350W"
@@ -57,7 +57,7 @@ def test_wire_feed_is_a_continuous_lattice_with_the_exact_mass_flux():
 def test_deposit_counts_material_on_the_substrate_and_spatter_apart():
     """measure(): wire material that has left the wire counts in the deposit where it lies over
     the substrate, and as off_substrate_kg (not deposit) where it was flung beside it."""
-    from torchsph.state import Phase
+    from torchsph.core.state import Phase
 
     cfg = small("scene.source_layout=\"none\"")
     scene, sim = make_simulation(cfg)
@@ -97,13 +97,13 @@ def test_feed_can_start_late():
     moved = 8.0e-3 + 1.25e-4 - float(sim.state.x[wire.nonzero()[0], 2])
     assert info["wire_fed_kg"] == pytest.approx(rhoA * moved, rel=1e-9)
     assert info["wire_fed_kg"] == pytest.approx(rhoA * 0.3 * (sim.t - 0.005), abs=rhoA * 0.3 * 2 * sim.choose_dt()[0])
-    # the studies' nominal feed (torchsph.post) is what a feed that never waits brings, late start included
+    # the studies' nominal feed (torchsph.post.analysis) is what a feed that never waits brings, late start included
     assert info["wire_fed_kg"] == pytest.approx(nominal_wire_fed_kg(cfg, sim.t), abs=rhoA * 0.3 * 2 * sim.choose_dt()[0])
     assert nominal_wire_fed_kg(cfg, 0.004) == 0.0
 
 
 def test_unmelted_wire_reaching_the_substrate_stops_with_a_diagnosis():
-    from torchsph.simulation import SimulationError
+    from torchsph.step.simulation import SimulationError
 
     cfg = small("scene.source_layout=\"none\"", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=0.5e-3",
                 "scene.wire_stall=false")
@@ -117,7 +117,7 @@ def test_with_wire_stall_the_feed_waits_on_solid_substrate_and_goes_on_once_the_
     """scene.wire_stall: unmelted wire that reaches solid substrate rests there (no stop, no
     overlap growing), the fed length stops at the distance the wire moved, the stalled time is
     counted; once the touching layer has melted the feed goes on at the feed speed."""
-    from torchsph.state import Phase
+    from torchsph.core.state import Phase
 
     V, gap = 0.03, 0.1e-3  # V dt < dx / 4 (no sources: dt is the heating limit, ~1.5 ms)
     cfg = small("scene.source_layout=\"none\"", f"scene.wire_feed_m_s={V}", f"scene.wire_gap_m={gap}",
@@ -160,8 +160,8 @@ def test_solid_wire_may_dip_into_the_melt_pool_but_not_into_solid_substrate():
     """The wire is fed into the pool: solid wire below the substrate's top is allowed where
     the substrate around it is melt, and also beside the rigid wall of that pool; it stops
     the run (with the diagnosis) as soon as rigid substrate is within one spacing below it."""
-    from torchsph.simulation import SimulationError
-    from torchsph.state import Phase
+    from torchsph.core.state import Phase
+    from torchsph.step.simulation import SimulationError
 
     cfg = small("scene.source_layout=\"none\"", "scene.wire_gap_m=0.0", "scene.wire_stall=false")
     scene, sim = make_simulation(cfg)
@@ -196,8 +196,8 @@ def test_refrozen_wire_material_welds_to_the_substrate_and_unmelted_wire_still_s
     above the liquidus; here the outer ring of the bottom layer, marked so by hand) joins the
     substrate where it reaches into it and moves with it; its mass is counted once and the
     total mass is unchanged. The never-melted core behind it still stops the run."""
-    from torchsph.deposition import SUBSTRATE
-    from torchsph.simulation import SimulationError
+    from torchsph.scenes.deposition import SUBSTRATE
+    from torchsph.step.simulation import SimulationError
 
     cfg = small("scene.source_layout=\"none\"", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=0.25e-3",
                 "scene.substrate_velocity_m_s=[0.015, 0.0, 0.0]", "scene.wire_stall=false")
@@ -247,7 +247,7 @@ def _run_pair(cfg, steps):
 
 def test_active_set_error_stays_below_its_tolerance():
     """A 300 W beam on a plate for 40 ms with and without the active set: temperatures
-    differ by less than the tolerance (the bound of torchsph/active.py) while a fraction of
+    differ by less than the tolerance (the bound of torchsph/step/active.py) while a fraction of
     the particles does the work."""
     base = ["run.t_end_s=0.04", "scene.size_m=[16.0e-3, 12.0e-3, 1.5e-3]", "scene.dx_m=2.5e-4"]
     _, cfg_full = load_case(ROOT / "cases" / "beam_plate", base + ["numerics.skip_cold_solid=false"])
@@ -317,12 +317,12 @@ def test_preview_needs_a_preview_table(tmp_path):
 
 def test_rigid_geometry_kept_across_rebuilds_equals_recomputing_it():
     """Zeta, the surface area and the normal are recomputed after a neighbour rebuild only
-    where they can have changed (torchsph/thermal.py, "Cached geometry"): with melt on the
+    where they can have changed (torchsph/physics/thermal.py, "Cached geometry"): with melt on the
     moving substrate and wire layers entering, at every rebuild of the run what is kept and
     recomputed equals computing every row afresh to round-off, while a good part of the rows
     is kept. (Before new layers invalidated it, a wire particle that had been on the top
     face kept zeta = 1 where 1.0006 was due; before melt walls were excluded, 5e-2 was off.)"""
-    from torchsph.state import Phase
+    from torchsph.core.state import Phase
 
     cfg = small("scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1")
     _, sim = make_simulation(cfg)
@@ -413,7 +413,7 @@ def test_a_rebuild_between_steps_evaluates_the_rates_on_the_new_pairs():
 def test_the_rebuild_check_on_its_few_rows_sees_the_largest_displacement(heated):
     """The neighbour rebuild is decided on the fluid, the walls, the particles whose rigid body
     changed since the last build and one particle per rigid body, a cold one where it has one
-    (torchsph.bookkeeping.moving_rows), not on every particle: at every step of a run with melt,
+    (torchsph.step.bookkeeping.moving_rows), not on every particle: at every step of a run with melt,
     freezing and a fed wire, every particle left out of them has moved since the last build as
     one of them has (to round-off: it moved with a body they represent), so the largest
     displacement is theirs, while they are far fewer. Once with a longer substrate and wire than
@@ -451,7 +451,7 @@ def test_the_rebuild_check_on_its_few_rows_sees_the_largest_displacement(heated)
 
 def test_reused_rate_arrays_give_the_same_run_as_fresh_ones():
     """dv/dt, drho/dt and dh/dt are written into arrays reused from step to step, zeroing only
-    the rows written the step before (torchsph.fluid.Embedded): a run with melt, surface
+    the rows written the step before (torchsph.physics.fluid.Embedded): a run with melt, surface
     forces, the contact term and a fed wire is the same bit for bit as one that makes every
     rate array afresh."""
     cfg = small("scene.wire_gap_m=1.5e-3", "scene.wire_feed_m_s=0.1")
@@ -542,7 +542,7 @@ def test_with_wire_stall_the_feed_also_waits_while_it_squeezes_melt():
     """Melt caught under the solid tip (1.25 spacings below it) and compressed by 20 % makes
     the feed wait (scene.wire_squeeze_limit = 0.15); compressed by 10 %, or compressed by
     20 % but 2 spacings or more from the wire, it does not. Without wire_stall nothing waits."""
-    from torchsph.state import Phase
+    from torchsph.core.state import Phase
 
     dx = 2.5e-4
     for stall in (True, False):
@@ -572,7 +572,7 @@ def test_zeta_made_with_the_colour_gradient_equals_zeta_made_alone(monkeypatch):
     colour stage makes afresh: it makes zeta from the same pairs (one pass, not two). Those
     values equal zeta made alone (laplacian_norm on those rows) bit for bit, so a restart, which
     makes every row's zeta alone, continues the run exactly."""
-    from torchsph import thermal
+    from torchsph.physics import thermal
 
     cfg = small("scene.source_power_W=300.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=3.0e-3")
     _, sim = make_simulation(cfg)
@@ -598,7 +598,7 @@ def test_the_deposition_scene_runs_in_float32_through_its_first_melt():
     """In float32 a denominator floored at 1e-300 is floored at 0 (1e-300 rounds to 0): the first
     melt particle in the contact band, with no surface beside it, divided by zero and the run
     stopped with an infinite surface tension at its 22nd step. The floor is now the dtype's
-    (:func:`torchsph.fluid.tiny`): the run passes its first melt with finite accelerations and
+    (:func:`torchsph.physics.fluid.tiny`): the run passes its first melt with finite accelerations and
     closes its energy balance to float32's precision (measured 3.9e-6 of the flows)."""
     ov = ["scene.dx_m=3.0e-4", "scene.substrate_size_m=[4.0e-3, 4.0e-3, 1.5e-3]", "scene.wire_offset_m=2.0e-3",
           "scene.wire_length_m=1.5e-3", 'run.dtype="float32"']

@@ -3,12 +3,13 @@ import math
 
 import pytest
 import torch
-
 from conftest import CASES
-from torchsph.config import load_case
-from torchsph.runner import make_simulation, run_steps
-from torchsph.analytic import poiseuille_exact, taylor_green_exact
-from torchsph.simulation import SimulationError
+
+from torchsph.core.analytic import poiseuille_exact, taylor_green_exact
+from torchsph.io.config import load_case
+from torchsph.run.build import make_simulation
+from torchsph.step.loop import run_steps
+from torchsph.step.simulation import SimulationError
 
 
 def sim_for(case, *overrides):
@@ -136,8 +137,9 @@ def test_taylor_green_with_no_numerics_table_gets_the_verified_scheme(tmp_path):
     diffusion and no shifting, it ends ~31 % off)."""
     import math
 
-    from torchsph.config import load_case
-    from torchsph.runner import make_simulation, run_steps
+    from torchsph.io.config import load_case
+    from torchsph.run.build import make_simulation
+    from torchsph.step.loop import run_steps
 
     case = tmp_path / "case.toml"
     case.write_text('[scene]\ntype = "taylor_green"\ndim = 2\nlength_m = 1.0\nnx = 64\nU_m_s = 1.0\n\n'
@@ -152,11 +154,11 @@ def test_taylor_green_with_no_numerics_table_gets_the_verified_scheme(tmp_path):
 
 
 def test_a_reused_rate_array_is_zero_off_the_rows_of_its_last_use():
-    """torchsph.fluid.Embedded hands out one array again and again, zeroing only the rows written
+    """torchsph.physics.fluid.Embedded hands out one array again and again, zeroing only the rows written
     at its last use (put, and added into and marked): after uses on other rows, and after an
     addition into marked rows, it equals the array made afresh, bit for bit; a mark on another
     array is not its own; a new length makes a new array."""
-    from torchsph.fluid import Embedded, embed
+    from torchsph.physics.fluid import Embedded, embed
 
     g = torch.Generator().manual_seed(3)
     e = Embedded()
@@ -192,13 +194,13 @@ def growth_of_a_displacement(C: float, steps: int) -> float:
 
 
 def test_the_shift_is_stable_below_its_computed_limit_and_amplifies_above_it():
-    """torchsph.fluid.shifting_limit (the linearised shift's largest gain over the lattice's waves)
+    """torchsph.physics.fluid.shifting_limit (the linearised shift's largest gain over the lattice's waves)
     is 0.51 for Wendland C2 at h = 1.5 dx in 2-D. On the vortex's lattice (30^2, the first 20
     steps, before the flow has deformed it) a 1e-12 displacement decays at 0.8 of the limit
     (measured 0.34x) and grows more than 100x at 1.4 of it (1 577x at C = 0.7, 1e7x at 1.0).
     A case above the limit is refused, naming it."""
-    from torchsph.config import CaseError
-    from torchsph.fluid import shifting_limit
+    from torchsph.io.config import CaseError
+    from torchsph.physics.fluid import shifting_limit
 
     lim = shifting_limit("wendland_c2", 2, 1.5)
     assert 0.50 < lim < 0.52

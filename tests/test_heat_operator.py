@@ -1,21 +1,21 @@
-"""The conduction sum as a cached sparse operator (torchsph/heat_operator.py) against the
+"""The conduction sum as a cached sparse operator (torchsph/physics/heat_operator.py) against the
 plain Cleary-Monaghan pair sum over the neighbour table (thermal.conduction_pairs), at the
 same state: on a random cloud, through melting and refreezing between neighbour builds, and
 through a deposition run with melt, feed and partial rebuilds."""
 import pytest
 import torch
-
 from conftest import CASES
-from torchsph.config import load_case
-from torchsph.fluid import embed
-from torchsph.heat_operator import material_factor
-from torchsph.neighbors import NeighbourTable, build_table
-from torchsph.runner import make_simulation, run_steps
-from torchsph.state import Phase
-from torchsph.thermal import conduction_pairs
-
 from test_deposition import small
 from test_thermal import cloud_conduction
+
+from torchsph.core.neighbors import NeighbourTable, build_table
+from torchsph.core.state import Phase
+from torchsph.io.config import load_case
+from torchsph.physics.fluid import embed
+from torchsph.physics.heat_operator import material_factor
+from torchsph.physics.thermal import conduction_pairs
+from torchsph.run.build import make_simulation
+from torchsph.step.loop import run_steps
 
 
 def pair_sum(th, state, T):
@@ -117,8 +117,8 @@ def test_operator_through_a_deposition_run():
 
 def restarts_bit_for_bit(sim, cfg, tmp_path, K: int = 30):
     """A checkpoint of ``sim`` now, then K steps of it and K of a restart from the checkpoint: equal bit for bit."""
-    from torchsph import checkpoint as ckpt
-    from torchsph.runner import resume
+    from torchsph.io import checkpoint as ckpt
+    from torchsph.run.build import resume
 
     path = tmp_path / "checkpoint.pt"
     ckpt.save(sim, path, ckpt.config_hash(cfg))
@@ -153,8 +153,8 @@ def test_a_checkpoint_without_the_operators_arrays_gets_the_matrix_back_at_the_n
     last build: none on a moving substrate), and the next neighbour build makes the matrix
     anew, which then holds most pairs again (before the fix it stayed empty while the
     conducting rows stayed the same: every pair evaluated every step, 9x slower)."""
-    from torchsph import checkpoint as ckpt
-    from torchsph.runner import resume
+    from torchsph.io import checkpoint as ckpt
+    from torchsph.run.build import resume
 
     cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3",
                 "numerics.conduction_window=0.0")  # (every pair every step: compared with the pair sum)
@@ -206,7 +206,7 @@ def test_an_operator_that_follows_a_new_row_set_is_the_one_made_afresh():
     new rows' entries and drops the left rows' (``follow``). It must be the operator made
     afresh for the new rows, bit for bit (a restart makes it afresh), with some particles no
     longer steady (melted) and two bodies."""
-    from torchsph.heat_operator import ConductionOperator
+    from torchsph.physics.heat_operator import ConductionOperator
     st, c = cloud_conduction(n=600, seed=3)
     n = st.n
     g = torch.Generator().manual_seed(5)
@@ -234,8 +234,8 @@ def test_rigid_marks_from_the_few_rows_equal_every_rows_own():
     or from the non-firm rows and those whose row may hold a partner of another body (after
     a partial rebuild: ``cross_rows``), equal the marks read from every working row, through
     a deposition run with melt, a fed wire and partial rebuilds, at every selection."""
-    from torchsph.bookkeeping import cross_rows
-    from torchsph.thermal import rigid_marks, rigid_marks_direct
+    from torchsph.physics.conduction_select import rigid_marks, rigid_marks_direct
+    from torchsph.step.bookkeeping import cross_rows
     cfg = small("scene.source_power_W=150.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=1.0e-3",
                 "numerics.conduction_window=0.0")  # (every pair every step: compared with the pair sum)
     _, sim = make_simulation(cfg)
@@ -264,8 +264,8 @@ def test_an_operator_made_in_blocks_of_rows_is_the_one_made_whole(monkeypatch):
     """The rigid entries are made in blocks of rows (a whole build of the full scene once every
     particle works peaked at ~20 GB): the same entries, values and order as in one go, bit
     for bit, for a build and for a follow, with blocks that cut the rows unevenly."""
-    from torchsph import heat_operator
-    from torchsph.heat_operator import ConductionOperator
+    from torchsph.physics import heat_operator
+    from torchsph.physics.heat_operator import ConductionOperator
     st, c = cloud_conduction(n=600, seed=4)
     n = st.n
     g = torch.Generator().manual_seed(6)
@@ -304,7 +304,7 @@ def test_a_split_operator_whose_window_closes_at_every_step_is_the_pair_sum(monk
     product, the boundary pairs and the slow pairs less the boundary are the whole pair sum to
     round-off, at every step, while slow rows exist; splits kept through a selection (no new
     fast row) with the new values among them."""
-    from torchsph.heat_operator import SlowSplit
+    from torchsph.physics.heat_operator import SlowSplit
 
     made, revalued = [0], [0]
     init, revalue = SlowSplit.__init__, SlowSplit.revalue
@@ -342,20 +342,19 @@ def test_a_window_waits_and_conserves_energy_and_a_restart_inside_it_is_bit_for_
     """With the window on, the slow pairs are summed on few steps (the window spans several
     acoustic steps), the energy balance closes to round-off, and a checkpoint written while a
     window is open restarts bit for bit (the window's start is carried)."""
-    from torchsph import thermal
 
     cfg = windowed()
     _, sim = make_simulation(cfg)
     run_steps(sim, steps=150)  # (until the melt's acoustic step holds dt: before, the heating limit did)
     assert sim.n_fluid > 0
     closed = []
-    orig = thermal.slow_factor
+    import torchsph.step.simulation as simulation
+    orig = simulation.slow_factor
 
     def counted(th, t, dt, limits):
         f = orig(th, t, dt, limits)
         closed.append(f is not None)
         return f
-    import torchsph.simulation as simulation
     simulation.slow_factor = counted
     try:
         run_steps(sim, steps=100)
@@ -375,8 +374,8 @@ def test_the_changed_entries_found_from_the_rows_are_those_of_the_whole_pass(sha
     over every entry: the same entries, for none, a few and many changed particles, and a
     changed particle that is a column without a row (the whole pass). Once with the rows' search
     taken however many rows changed, once with the whole pass where they hold a large share."""
-    import torchsph.heat_operator as H
-    from torchsph.heat_operator import changed_entries
+    import torchsph.physics.heat_operator as H
+    from torchsph.physics.heat_operator import changed_entries
 
     if share is not None:
         monkeypatch.setattr(H, "WHOLE_PASS_SHARE", share)
@@ -403,8 +402,8 @@ def test_frozen_rows_are_none_a_beam_or_a_loss_can_reach():
     fixed step (windows of ~20 steps) freezes interior rows, never a surface row or one a beam
     can reach, and books its energy to round-off; a beam that may reach any row (a moving one:
     no candidate rows) freezes none."""
-    from torchsph.thermal import integrated_rows, surface_rows
-
+    from torchsph.physics.conduction_window import integrated_rows
+    from torchsph.physics.losses import surface_rows
     _, cfg = load_case(CASES / "beam_plate", ["run.t_end_s=0.02", "numerics.conduction_window=0.25",
                                               "numerics.dt_s=2e-6", "thermal.emissivity=0.4"])
     _, sim = make_simulation(cfg)

@@ -1,16 +1,17 @@
-"""The volumetric heat source ([heating], torchsph/terms/heating.py): a term composed into
+"""The volumetric heat source ([heating], torchsph/physics/terms/heating.py): a term composed into
 the step through the term protocol, checked against the heat equation's exact solution
 and the energy balance."""
 import math
 
 import pytest
 import torch
-
 from conftest import CASES
-from torchsph.analytic import box_source_rise
-from torchsph.config import load_case
-from torchsph.runner import make_simulation, run_steps
-from torchsph.schema import CaseError
+
+from torchsph.core.analytic import box_source_rise
+from torchsph.core.schema import CaseError
+from torchsph.io.config import load_case
+from torchsph.run.build import make_simulation
+from torchsph.step.loop import run_steps
 
 RHO, CP, K = 7890.0, 450.0, 42.0
 

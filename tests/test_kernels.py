@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from torchsph.kernels import KERNELS, make_kernel
+from torchsph.core.kernels import KERNELS, make_kernel
 
 
 def radial_integral(kernel, h, fn, n=200_000):

@@ -12,9 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from torchsph.config import load_case
-from torchsph.io import read_snapshot
-from torchsph.runner import make_simulation, run_steps
+from torchsph.io.config import load_case
+from torchsph.io.snapshots import read_snapshot
+from torchsph.run.build import make_simulation
+from torchsph.step.loop import run_steps
 
 pytest.importorskip("mpi4py")
 ROOT = Path(__file__).resolve().parents[1]
@@ -143,7 +144,7 @@ def test_checkpoint_restarts_on_other_rank_counts(tmp_path, which):
     """A checkpoint written by 2 ranks restarts on 1 and on 3 (2 for the cold half) and
     continues to the state of the uninterrupted run (the deposition scene: a wire layer
     enters in each half)."""
-    from torchsph.checkpoint import read
+    from torchsph.io.checkpoint import read
 
     case, ov, _ = {"fluid": FLUID, "deposition": DEPOSITION, "cold_half": COLD_HALF}[which]
     K = {"fluid": 120, "deposition": 100, "cold_half": 88}[which]

@@ -1,8 +1,10 @@
 """Cell-list neighbour search equals brute force exactly (property-based)."""
 import torch
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from torchsph.neighbors import Domain, VerletList, brute_force_pairs, build_pairs, build_table, subset_table
+from torchsph.core.neighbors import Domain, brute_force_pairs, build_pairs, build_table
+from torchsph.core.verlet import VerletList, subset_table
 
 
 def as_set(i, j):
@@ -53,7 +55,7 @@ def test_grouped_passes_give_the_table_of_one_pass_at_a_time(c, seed):
     table, order within rows included, that one pass at a time gives; so do the cells' runs
     found by binary search instead of read from the cells' start table; and a table of some
     rows (a partial rebuild's) is those rows of the whole table."""
-    from torchsph import neighbors
+    from torchsph.core import neighbors
 
     x, radius, dom = c
     rows = torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(seed))[: max(1, x.shape[0] // 3)]
@@ -236,10 +238,10 @@ def test_partial_rebuild_holds_exactly_the_pairs_of_a_full_build(seed, with_work
 @settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**31 - 1), st.sampled_from([2, 3]), st.floats(0.02, 0.3))
 def test_active_set_dilation_holds_every_particle_within_the_radius(seed, dim, radius):
-    """The active set's dilation (torchsph/active.py): every particle within ``radius`` of a
+    """The active set's dilation (torchsph/step/active.py): every particle within ``radius`` of a
     seed is taken in (brute force), none beyond (1 + 1/k) sqrt(dim) radius (k voxels per radius:
     each axis's reach); the dense voxel grid (running sums) and the sparse voxel keys give the same set."""
-    import torchsph.active as A
+    import torchsph.step.active as A
 
     g = torch.Generator().manual_seed(seed)
     x = torch.rand(400, dim, generator=g, dtype=torch.float64) * torch.tensor([1.0, 0.7, 0.4][:dim])
@@ -265,7 +267,7 @@ def test_a_trimmed_gather_holds_the_same_pairs_in_fewer_columns():
     lattice's): the rows far from the blob, gathered with ``trim``, come in at most 3/4 of the
     table's width, a multiple of 8, with exactly the pairs of the untrimmed gather (every
     dropped column is padding in all of them); rows that need the full width keep it."""
-    from torchsph.neighbors import NeighbourTable
+    from torchsph.core.neighbors import NeighbourTable
 
     g = torch.linspace(0.0, 1.0, 41, dtype=torch.float64)
     lattice = torch.cartesian_prod(g, g)

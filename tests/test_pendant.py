@@ -5,15 +5,15 @@ import math
 
 import pytest
 import torch
-
-from torchsph.analytic import HARKINS_BROWN, harkins_brown, tate_mass
-from torchsph.caps import fallen_mass
-from torchsph.config import CaseError, load_case
-from torchsph.runner import make_simulation, run_steps
-from torchsph.scenes import build_scene
-from torchsph.state import Phase
-
 from conftest import CASES
+
+from torchsph.core.analytic import HARKINS_BROWN, harkins_brown, tate_mass
+from torchsph.core.state import Phase
+from torchsph.io.config import CaseError, load_case
+from torchsph.post.caps import fallen_mass
+from torchsph.run.build import make_simulation
+from torchsph.scenes.builders import build_scene
+from torchsph.step.loop import run_steps
 
 torch.set_num_threads(1)
 
@@ -114,7 +114,7 @@ def test_pendant_drop_falls_at_tate_harkins_brown(liquid, d_wire, extra):
     21.6 % heavy. The 1 and 1.2 mm water-like drops peel off the
     wire's face whole and fall 17-25 % heavy, which this test would reject
     (docs/VERIFICATION.md, section 5.1)."""
-    from torchsph.caps import PENDANT_LIQUIDS, detach
+    from torchsph.post.caps import PENDANT_LIQUIDS, detach
 
     liq = PENDANT_LIQUIDS[liquid]
     r = detach(CASES / "pendant_drop", liq["over"] + ["scene.dx_m=1.25e-4", f"scene.wire_diameter_m={d_wire}",

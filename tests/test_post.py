@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from torchsph import post
+from torchsph.post import analysis as post
 
 DX = 1.0e-4
 TL = 1753.15

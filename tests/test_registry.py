@@ -1,4 +1,4 @@
-"""The per-particle array registry (torchsph.particles): every array a checkpoint, a
+"""The per-particle array registry (torchsph.step.particles): every array a checkpoint, a
 migration, a ghost refresh or a snapshot carries is one it declares, and a term's own array
 travels through all of them with no edit outside the term's module (tests/tally_term.py)."""
 import json
@@ -12,14 +12,15 @@ import h5py
 import numpy as np
 import pytest
 import torch
-
 from conftest import CASES
-from torchsph import checkpoint as ckpt
-from torchsph import particles
-from torchsph.config import load_case
-from torchsph.runner import make_simulation, run_steps
-from torchsph.schema import CaseError
-from torchsph.state import FIELDS, ParticleState
+
+from torchsph.core.schema import CaseError
+from torchsph.core.state import FIELDS, ParticleState
+from torchsph.io import checkpoint as ckpt
+from torchsph.io.config import load_case
+from torchsph.run.build import make_simulation
+from torchsph.step import particles
+from torchsph.step.loop import run_steps
 
 ROOT = Path(__file__).resolve().parents[1]
 MPIEXEC = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")

@@ -104,11 +104,42 @@ def test_no_import_cycle_in_the_packages():
     """The import graph of torchsph/ and parallel/ (every import, at module or function level)
     has no cycle: the layers' imports only point down."""
     graph = _import_graph()
-    assert "torchsph.scenes" in graph and "torchsph.deposition" in graph["torchsph.scenes"]
+    assert "torchsph.scenes.builders" in graph and "torchsph.scenes.deposition" in graph["torchsph.scenes.builders"]
     assert _cycles(graph) == []
     # the solver never imports the MPI layer; the command line (torchsph.__main__) runs either
     core = {m: ds for m, ds in graph.items() if m.startswith("torchsph") and m != "torchsph.__main__"}
     assert not [(m, d) for m, ds in core.items() for d in ds if d.startswith("parallel")]
+
+
+# the layers of torchsph/, lowest first: a module imports only from its own layer or those below
+LAYERS = ("core", "physics", "step", "scenes", "io", "run", "post")
+
+
+def _layer(mod: str) -> int | None:
+    parts = mod.split(".")
+    return LAYERS.index(parts[1]) if parts[0] == "torchsph" and len(parts) > 2 and parts[1] in LAYERS else None
+
+
+def test_every_module_is_in_a_layer_and_imports_point_down():
+    """torchsph/ is folders of layers (core, physics, step, scenes, io, run, post; the package's
+    __init__ and __main__ above them): every import of a module, at module or function level,
+    is of its own layer or one below. So the physics never imports the step, a scene, the I/O or
+    the run loop, and nothing below the command line imports the MPI layer."""
+    graph = _import_graph()
+    loose = [m for m in graph if m.startswith("torchsph.") and _layer(m) is None
+             and m not in ("torchsph.__main__",) and m.split(".")[1] not in LAYERS]
+    assert loose == [], loose
+    up = [f"{m} ({LAYERS[_layer(m)]}) imports {d} ({LAYERS[_layer(d)]})" for m, ds in graph.items()
+          if _layer(m) is not None for d in ds if _layer(d) is not None and _layer(d) > _layer(m)]
+    assert up == [], "\n".join(up)
+    physics = [m for m in graph if _layer(m) == LAYERS.index("physics")]
+    assert "torchsph.physics.thermal" in physics and "torchsph.physics.terms.heating" in physics
+    assert not [(m, d) for m in physics for d in graph[m] if d.startswith(("parallel", "torchsph.step"))]
+
+
+def test_the_direction_test_sees_an_upward_import():
+    assert _layer("torchsph.step.rates") > _layer("torchsph.physics.fluid") > _layer("torchsph.core.state")
+    assert _layer("torchsph.__main__") is None and _layer("torchsph.post.analysis") == len(LAYERS) - 1
 
 
 def _sizes():

@@ -5,18 +5,18 @@ import math
 
 import pytest
 import torch
-
-from torchsph.config import CaseError, load_case
-from torchsph.neighbors import Domain, NeighbourTable
-from torchsph.kernels import make_kernel
-from torchsph.runner import make_simulation, run_steps
-from torchsph.scenes import lattice
-from torchsph.simulation import SimulationError
-from torchsph.state import ParticleState, Phase
-from torchsph.surface import SurfaceForces, SurfaceParams
-from torchsph.thermal import SurfaceLosses
-
 from conftest import CASES, assert_blow_up_diagnosed
+
+from torchsph.core.kernels import make_kernel
+from torchsph.core.neighbors import Domain, NeighbourTable
+from torchsph.core.state import ParticleState, Phase
+from torchsph.io.config import CaseError, load_case
+from torchsph.physics.losses import SurfaceLosses
+from torchsph.physics.surface import SurfaceForces, SurfaceParams
+from torchsph.run.build import make_simulation
+from torchsph.scenes.builders import lattice
+from torchsph.step.loop import run_steps
+from torchsph.step.simulation import SimulationError
 
 torch.set_num_threads(1)  # these scenes are small: threads only add overhead
 
@@ -97,7 +97,7 @@ def flat_slab(T_of_xy, n=(12, 12, 8), dx=1e-4, dtype=torch.float64):
 def test_recoil_integrates_to_vapour_pressure_times_area():
     """On a flat heated surface the recoil force sums to int p_v(T) dA (within 2 %; the
     CSF delta normalisation makes it exact to round-off on a lattice) and points into the melt."""
-    from torchsph.neighbors import build_table
+    from torchsph.core.neighbors import build_table
 
     dx, n = 1e-4, (12, 12, 8)
     Lx, Ly = n[0] * dx, n[1] * dx
@@ -177,7 +177,7 @@ def test_oscillating_drop_mode2_period():
 def birikh_layer(n_depth=10, t_end=0.008):
     """The thermocapillary layer of cases/thermocapillary_layer_2d with the surface tilt of
     the steady return flow built in (deeper at the cold end) and T = T0 + G x held."""
-    from torchsph.scenes import build_scene, tait_density
+    from torchsph.scenes.builders import build_scene, tait_density
 
     _, cfg = load_case(CASES / "thermocapillary_layer_2d", [f"scene.n_depth={n_depth}"])
     G, T0 = 4000.0, 300.0
@@ -258,7 +258,7 @@ def test_one_colour_gradient_per_step_for_the_surface_forces_and_the_losses(monk
     are those of separate evaluations: the runs before and after this stage agree bit for bit."""
     from pathlib import Path
 
-    from torchsph.free_surface import colour_and_norm_pairs, colour_gradient_pairs
+    from torchsph.physics.free_surface import colour_and_norm_pairs, colour_gradient_pairs
 
     root = Path(__file__).resolve().parents[1]
     _, cfg = load_case(root / "cases" / "cube_evaporation_preview", ["scene.size_m=[2.5e-3, 2.5e-3, 2.5e-3]",
@@ -280,8 +280,8 @@ def test_one_colour_gradient_per_step_for_the_surface_forces_and_the_losses(monk
         return colour_and_norm_pairs(*a)
 
     stage.fn = counted  # the stage's pair sum, and the one the losses would call on their own
-    monkeypatch.setattr("torchsph.thermal.colour_gradient_pairs", counted)
-    monkeypatch.setattr("torchsph.free_surface.colour_and_norm_pairs", counted_norm)
+    monkeypatch.setattr("torchsph.physics.losses.colour_gradient_pairs", counted)
+    monkeypatch.setattr("torchsph.physics.free_surface.colour_and_norm_pairs", counted_norm)
     per_step, rebuilt, rows = [], [], []
     for k in range(10):
         if k in (3, 7):

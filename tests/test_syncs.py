@@ -2,11 +2,11 @@
 neighbour rebuilds (what would stop the host on a GPU; counted on the CPU)."""
 import pytest
 import torch
-
-from torchsph.runner import make_simulation, run_steps
-from torchsph.syncs import SyncCounter
-
 from test_deposition import small
+
+from torchsph.core.syncs import SyncCounter
+from torchsph.run.build import make_simulation
+from torchsph.step.loop import run_steps
 
 
 def test_the_counter_sees_every_kind_of_read():

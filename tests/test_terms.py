@@ -2,14 +2,15 @@
 hooks, and its per-particle arrays travel with the particles."""
 import pytest
 import torch
-
 from conftest import CASES
-from torchsph import checkpoint as ckpt
-from torchsph import particles
-from torchsph.config import load_case
-from torchsph.runner import make_simulation, run_steps
-from torchsph.state import Array
-from torchsph.terms import TERMS, Term, register
+
+from torchsph.core.state import Array
+from torchsph.io import checkpoint as ckpt
+from torchsph.io.config import load_case
+from torchsph.physics.terms import TERMS, Term, register
+from torchsph.run.build import make_simulation
+from torchsph.step import particles
+from torchsph.step.loop import run_steps
 
 
 def test_a_terms_per_particle_arrays_travel_with_the_particles(tmp_path, monkeypatch):
@@ -59,7 +60,7 @@ def test_a_term_must_name_its_section_and_write_only_known_rates():
         section = "odd"
         writes = ("pressure",)
     for cls in (Nameless, Odd):
-        with pytest.raises(TypeError, match="a term needs a section and writes only"):
+        with pytest.raises(TypeError, match="a term needs a section and writes rates"):
             register(cls)
     assert "odd" not in TERMS
 
@@ -95,7 +96,7 @@ def test_a_force_term_drives_a_channel_like_the_fluids_own_body_force(monkeypatc
 
 
 def test_solid_contact_keeps_melt_out_of_the_solids_spacing():
-    """[solid_contact] (torchsph/terms/contact.py) on the small deposition scene, 300 steps
+    """[solid_contact] (torchsph/physics/terms/contact.py) on the small deposition scene, 300 steps
     with melt beside the substrate and the wire: without it the melt creeps into the solid's
     lattice (its nearest solid particle comes to < 0.85 dx), with the spring (approach_over_c0
     = 0) no melt particle comes within 0.95 dx of solid at any sampled step, with the cases'
@@ -103,7 +104,8 @@ def test_solid_contact_keeps_melt_out_of_the_solids_spacing():
     particle at a lattice spacing feels nothing) and brings its time-step limit only while
     melt is near solid."""
     from test_deposition import small
-    from torchsph.terms.contact import SolidContact
+
+    from torchsph.physics.terms.contact import SolidContact
 
     base = ("scene.source_power_W=300.0", "scene.wire_feed_m_s=0.3", "scene.wire_gap_m=3.0e-3")
     closest = {}
@@ -149,7 +151,8 @@ def test_solid_contact_against_approach_only_stops_without_rebound():
     A particle fired at a fixed solid particle is stopped short of it and stays (no
     rebound), where the spring alone sends it back at its approach speed."""
     from types import SimpleNamespace
-    from torchsph.terms.contact import SolidContact
+
+    from torchsph.physics.terms.contact import SolidContact
 
     K, r0, u_s = 100.0, 1.0e-4, 0.2
     dom = SimpleNamespace(minimum_image=lambda d: d)

@@ -3,15 +3,17 @@ import math
 
 import pytest
 import torch
-
 from conftest import CASES, assert_blow_up_diagnosed
-from torchsph.config import load_case
-from torchsph.kernels import WendlandC2
-from torchsph.neighbors import Domain, NeighbourTable, build_table
-from torchsph.runner import make_simulation, run_steps
-from torchsph.analytic import conduction_1d_exact, gaussian_bump_exact
-from torchsph.state import ParticleState, Phase
-from torchsph.thermal import Conduction, ThermalParams, effective_heat_capacity, enthalpy
+
+from torchsph.core.analytic import conduction_1d_exact, gaussian_bump_exact
+from torchsph.core.kernels import WendlandC2
+from torchsph.core.neighbors import Domain, NeighbourTable, build_table
+from torchsph.core.state import ParticleState, Phase
+from torchsph.io.config import load_case
+from torchsph.physics.enthalpy import ThermalParams, effective_heat_capacity, enthalpy
+from torchsph.physics.thermal import Conduction
+from torchsph.run.build import make_simulation
+from torchsph.step.loop import run_steps
 
 
 def cloud_conduction(n=300, seed=1):
@@ -58,7 +60,7 @@ def test_effective_heat_capacity_adds_latent_heat_exactly():
     assert integral == pytest.approx(450.0 * 2700.0 + 82_000.0, rel=1e-9)
     h = enthalpy(torch.tensor([3000.0], dtype=torch.float64), prm, 300.0)
     assert float(h) == pytest.approx(integral, rel=1e-9)
-    from torchsph.thermal import liquid_fraction
+    from torchsph.physics.enthalpy import liquid_fraction
     phi = liquid_fraction(torch.tensor([1700.0, 1723.15, 1738.15, 1753.15, 1800.0], dtype=torch.float64), prm)
     assert phi.tolist() == pytest.approx([0.0, 0.0, 0.5, 1.0, 1.0])
 
@@ -108,7 +110,7 @@ def test_thermal_limit_binds_without_fluid():
 
 def test_one_phase_stefan_front_vs_neumann():
     """Melt front s(t) = 2 lambda sqrt(alpha t) within 3 % (apparent heat capacity, 2.11)."""
-    from torchsph.analytic import melt_front, neumann_lambda
+    from torchsph.core.analytic import melt_front, neumann_lambda
 
     _, cfg = load_case(CASES / "stefan_1d")
     scene, sim = make_simulation(cfg)
@@ -129,8 +131,7 @@ def test_one_phase_stefan_front_vs_neumann():
 
 
 def test_enthalpy_inversion():
-    from torchsph.thermal import temperature_from_enthalpy
-
+    from torchsph.physics.enthalpy import temperature_from_enthalpy
     prm = ThermalParams(42.0, 450.0, latent_heat=2.7e5, solidus=1723.0, liquidus=1727.0)
     T = torch.linspace(300.0, 3500.0, 10001, dtype=torch.float64)
     back = temperature_from_enthalpy(enthalpy(T, prm, 0.0), prm, 0.0)
@@ -141,7 +142,7 @@ def test_banded_inversion_is_closed_form_off_the_mushy_band_and_newton_on_it():
     """The inversion of a large scene: closed form where h(T) is linear (exact: h(T) of the
     result gives H back to 1e-12 of c_p T), Newton on a fixed number of rows nearest the
     mushy interval, and every row of the band that did not fit flagged for the fallback."""
-    from torchsph.thermal import Inversion, banded_temperature, linear_branches, mushy_capacity
+    from torchsph.physics.enthalpy import Inversion, banded_temperature, linear_branches, mushy_capacity
     prm = ThermalParams(conductivity=42.0, specific_heat=450.0, latent_heat=82000.0, solidus=1723.15, liquidus=1753.15)
     g = torch.Generator().manual_seed(3)
     T = torch.cat([300.0 + 3200.0 * torch.rand(5000, generator=g, dtype=torch.float64),
@@ -172,8 +173,7 @@ def test_banded_inversion_is_closed_form_off_the_mushy_band_and_newton_on_it():
 
 def test_radiative_cooling_of_isothermal_slab_vs_ode():
     """m c dT/dt = -sigma eps A (T^4 - T0^4): temperature drop within 1 % of the ODE's."""
-    from torchsph.thermal import SIGMA_SB
-
+    from torchsph.physics.losses import SIGMA_SB
     _, cfg = load_case(CASES / "radiating_slab", ["scene.dx_m=0.2e-3", "run.t_end_s=0.5"])
     _, sim = make_simulation(cfg)
     s = sim.state
@@ -219,8 +219,7 @@ def test_energy_balance_with_beam_radiation_and_evaporation():
 
 
 def test_vapour_pressure_at_boiling_point():
-    from torchsph.thermal import SurfaceLosses
-
+    from torchsph.physics.losses import SurfaceLosses
     sl = SurfaceLosses(evaporation=True)
     p = sl.vapour_pressure(torch.tensor([3090.0, 2000.0], dtype=torch.float64))
     assert float(p[0]) == pytest.approx(0.54 * 101325.0)
@@ -265,7 +264,7 @@ def test_rosenthal_isotherm():
     point-source solution and of its superposition over the Gaussian spot. dx = 0.25 mm,
     24 x 12 x 6 mm plate (1.1e5 particles), pair loops compiled; the finer run is
     scripts/studies/rosenthal.py, quoted in the README."""
-    from torchsph.rosenthal import run_study
+    from torchsph.post.rosenthal import run_study
 
     r = run_study(0.25e-3, t_end=0.45, power=800.0, radius=0.5e-3, x_start=-8e-3, length=24e-3,
                   width=12e-3, depth=6e-3, compile=True)
@@ -292,8 +291,8 @@ def test_temperatures_checked_with_the_steps_other_reads_equal_those_checked_at_
     across the mushy interval: 72 of 600 inversions in 300 steps of stefan_1d, 275 on
     beam_plate), redoing the end of the step. Bit for bit the run that checks every
     inversion at once."""
-    from torchsph.thermal import Conduction, Inversion
-
+    from torchsph.physics.enthalpy import Inversion
+    from torchsph.physics.thermal import Conduction
     unchecked = Conduction.to_temperature_unchecked
 
     def run(at_once):
@@ -347,7 +346,7 @@ def test_newton_inverts_the_enthalpy_with_and_without_latent_heat(latent):
     (a 5 K step across the mushy interval: Newton's three steps fall short) meet it once
     fix_temperature's bisection has made them. Without latent heat (T_L = T_S, where the fused
     form would divide by T_L - T_S = 0) nothing is flagged."""
-    from torchsph.thermal import ThermalParams, enthalpy, fix_temperature, newton_temperature
+    from torchsph.physics.enthalpy import ThermalParams, enthalpy, fix_temperature, newton_temperature
     prm = ThermalParams(30.0, 700.0, latent, 1700.0, 1753.0 if latent > 0 else 1700.0)
     T = torch.linspace(300.0, 3000.0, 2001, dtype=torch.float64)
     H = enthalpy(T, prm, 0.0)

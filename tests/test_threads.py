@@ -1,10 +1,10 @@
-"""A run's CPU threads (torchsph/threads.py): the cores free when it starts, shared among the
+"""A run's CPU threads (torchsph/run/threads.py): the cores free when it starts, shared among the
 processes of its launch; --threads and OMP_NUM_THREADS decide where given."""
 import torch
-
 from conftest import CASES
-from torchsph import threads
+
 from torchsph.__main__ import main
+from torchsph.run import threads
 
 
 def test_free_threads_leave_the_busy_cores_and_share_the_rest():

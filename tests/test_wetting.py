@@ -5,14 +5,14 @@ import math
 
 import pytest
 import torch
-
-from torchsph import caps
-from torchsph.caps import contact_angle, fit_sphere
-from torchsph.config import CaseError, load_case
-from torchsph.runner import make_simulation, run_steps
-from torchsph.state import Phase
-
 from conftest import CASES
+
+from torchsph.core.state import Phase
+from torchsph.io.config import CaseError, load_case
+from torchsph.post import caps
+from torchsph.post.caps import contact_angle, fit_sphere
+from torchsph.run.build import make_simulation
+from torchsph.step.loop import run_steps
 
 torch.set_num_threads(1)  # these scenes are small: threads only add overhead
 
@@ -98,7 +98,7 @@ def pillar(pin: bool, monkeypatch) -> tuple[list, float]:
     """A 30 deg liquid on a 2-D pillar as wide as the drop's half-disc start (R = 15 dx): the
     fitted angles every ms over 14-20 ms, and the fraction of the melt below the pillar's top
     at 20 ms. ``pin``: Gibbs's criterion at the edges (False: the blended normal alone)."""
-    from torchsph.wetting import ContactAngle
+    from torchsph.physics.wetting import ContactAngle
 
     monkeypatch.setattr(ContactAngle, "pin", pin)
     _, cfg = load_case(CASES / "sessile_drop_2d", COMMON + [
@@ -179,7 +179,7 @@ def test_wetting_case_errors(over, match):
 
 def test_circular_cap_relations():
     """SPEC 3b's numbers: A = 2.26 mm^2 at 30 deg gives W 5.00 / H 0.67 mm, at 90 deg 2.40 / 1.20."""
-    from torchsph.analytic import circular_cap
+    from torchsph.core.analytic import circular_cap
 
     c30 = circular_cap(2.26e-6, math.radians(30.0), 2)
     c90 = circular_cap(2.26e-6, math.radians(90.0), 2)

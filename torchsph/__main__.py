@@ -7,10 +7,10 @@ import os
 import sys
 from pathlib import Path
 
-from .checkpoint import CheckpointError
-from .config import CaseError, load_case
-from .io import OutputError
-from .simulation import SimulationError, UnstableStepError
+from torchsph.io.checkpoint import CheckpointError
+from torchsph.io.config import CaseError, load_case
+from torchsph.io.snapshots import OutputError
+from torchsph.step.simulation import SimulationError, UnstableStepError
 
 
 def parse_args(argv=None):
@@ -81,7 +81,7 @@ def _global_checkpoint(path) -> bool:
     """A checkpoint written by an MPI run (it restarts on any number of ranks, one included)."""
     if path is None or not Path(path).exists():
         return False
-    from .checkpoint import read
+    from torchsph.io.checkpoint import read
     return read(path).get("format") == "global-1"
 
 
@@ -113,10 +113,10 @@ def main(argv=None) -> int:
         out = args.out if args.out is not None else path.parent / ("output_preview" if args.preview else "output")
         if not args.estimate:
             check_out(out, "--out" if args.out is not None else "the output folder")
-        from .runner import run_case
+        from torchsph.run.runner import run_case
         if args.checkpoint_every is not None and args.checkpoint_every <= 0:
             raise CaseError(f"--checkpoint-every {args.checkpoint_every}: must be > 0")
-        from . import threads
+        from torchsph.run import threads
         restart = args.restart if args.branch is None else args.branch
         kw = dict(t_end=args.t_end, steps=args.steps, device=args.device, dtype=args.dtype,
                   progress=not args.quiet, checkpoint_every=args.checkpoint_every, restart=restart,

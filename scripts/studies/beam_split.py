@@ -26,11 +26,11 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from torchsph.beam import beam_power  # noqa: E402
-from torchsph.config import load_case  # noqa: E402
-from torchsph.deposition import WIRE  # noqa: E402
-from torchsph.runner import make_simulation  # noqa: E402
-from torchsph.scenes import case_beams  # noqa: E402
+from torchsph.physics.beam import beam_power  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.scenes.deposition import WIRE  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.scenes.builders import case_beams  # noqa: E402
 
 
 def melt_power(cfg: dict) -> float:

@@ -24,8 +24,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from torchsph.analytic import tate_mass  # noqa: E402
-from torchsph.caps import PENDANT_LIQUIDS as MATERIALS, detach  # noqa: E402
+from torchsph.core.analytic import tate_mass  # noqa: E402
+from torchsph.post.caps import PENDANT_LIQUIDS as MATERIALS, detach  # noqa: E402
 
 CASE = ROOT / "cases" / "pendant_drop"
 

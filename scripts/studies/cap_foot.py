@@ -25,10 +25,11 @@ sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402
 
-from torchsph.caps import contact_angle  # noqa: E402
-from torchsph.config import load_case  # noqa: E402
-from torchsph.runner import make_simulation, run_steps  # noqa: E402
-from torchsph.state import Phase  # noqa: E402
+from torchsph.post.caps import contact_angle  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.step.loop import run_steps
+from torchsph.core.state import Phase  # noqa: E402
 
 
 def axis_distance(state, dx: float):

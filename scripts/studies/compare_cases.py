@@ -26,8 +26,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from torchsph import post  # noqa: E402
-from torchsph.io import read_snapshot  # noqa: E402
+from torchsph.post import analysis as post  # noqa: E402
+from torchsph.io.snapshots import read_snapshot  # noqa: E402
 
 CASES = ["along_250W", "along_300W", "along_350W", "perpendicular_350W"]
 

@@ -15,8 +15,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from torchsph.config import load_case  # noqa: E402
-from torchsph.runner import make_simulation, run_steps  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.step.loop import run_steps
 
 VARIANTS = {
     "a": ("surface tension only", ["thermal.evaporation=false", "surface.recoil=false", "surface.marangoni=false"]),

@@ -26,7 +26,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
-from torchsph.post import bead_settling, fed_cross_section  # noqa: E402
+from torchsph.post.analysis import bead_settling, fed_cross_section  # noqa: E402
 
 LONG = ["scene.dx_m=2.5e-4", "scene.substrate_size_m=[10.0e-3, 6.0e-3, 2.5e-3]",
         "scene.wire_length_m=3.0e-3", "scene.wire_offset_m=1.5e-3", "run.output_interval_s=0.01"]

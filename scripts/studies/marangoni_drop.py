@@ -19,8 +19,9 @@ sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402
 
-from torchsph.config import load_case  # noqa: E402
-from torchsph.runner import make_simulation, run_steps  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.step.loop import run_steps
 
 
 def profile(s, dx, c, edges):

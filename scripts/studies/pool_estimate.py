@@ -3,7 +3,7 @@
 The sources' absorbed power minus what melting the fed wire takes (rho pi d^2/4 V_wire
 [c_p (T_L - T0) + h_f]) heats the substrate; Rosenthal's quasi-steady solution for a thick
 plate moving at V_sub, superposed over each source's Gaussian spot where its axis meets the
-top face (torchsph/rosenthal.py), gives the T_L isotherm on the surface and below it.
+top face (torchsph/post/rosenthal.py), gives the T_L isotherm on the surface and below it.
 Pass --wire-share 0 for the upper bound (all the power into the substrate). The wire's
 shadow is not modelled: sources aimed at the wire put much of their power on it instead. Conduction only
 (no flow, no latent heat, insulated surface), read 0.1 mm below the top face: a yardstick for whether the pool can take the
@@ -23,9 +23,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from torchsph.config import load_case  # noqa: E402
-from torchsph.rosenthal import rosenthal_gaussian  # noqa: E402
-from torchsph.scenes import case_beams  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.post.rosenthal import rosenthal_gaussian  # noqa: E402
+from torchsph.scenes.builders import case_beams  # noqa: E402
 
 
 def estimate(cfg, wire_share: float = 1.0, dx: float = 2.5e-5, depth: float = 1.0e-4) -> dict:
@@ -36,7 +36,7 @@ def estimate(cfg, wire_share: float = 1.0, dx: float = 2.5e-5, depth: float = 1.
     rho, cp = fl["rho0_kg_m3"], th["specific_heat_J_kgK"]
     for key, want in (("conductivity_W_mK", 42.0), ("specific_heat_J_kgK", 450.0), ("liquidus_K", 1753.15)):
         if abs(th[key] - want) > 1e-9 * want:
-            raise SystemExit(f"pool_estimate: torchsph/rosenthal.py is set up for steel (thermal.{key} = {want})")
+            raise SystemExit(f"pool_estimate: torchsph/post/rosenthal.py is set up for steel (thermal.{key} = {want})")
     beams = case_beams(cfg)
     absorbed = sum(b["power_W"] * b["efficiency"] for b in beams)
     d, Vw = sc["wire_diameter_m"], sc["wire_feed_m_s"]

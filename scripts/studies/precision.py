@@ -24,9 +24,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from torchsph.config import load_case  # noqa: E402
-from torchsph.runner import make_simulation, run_steps  # noqa: E402
-from torchsph.state import Phase  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.step.loop import run_steps
+from torchsph.core.state import Phase  # noqa: E402
 
 
 def run(case: Path, preview: bool, dtype: str, times: list[float]):

@@ -1,4 +1,4 @@
-"""Rosenthal study (see torchsph/rosenthal.py): SPH T_L isotherm of a beam moving over a
+"""Rosenthal study (see torchsph/post/rosenthal.py): SPH T_L isotherm of a beam moving over a
 thick steel plate, against Rosenthal's point source and its Gaussian-spot superposition.
 
     python scripts/studies/rosenthal.py [--dx-mm 0.25] [--t-end 0.6] [--power 800] [--radius-mm 0.5]
@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from torchsph.rosenthal import run_study  # noqa: E402
+from torchsph.post.rosenthal import run_study  # noqa: E402
 
 
 def main():

@@ -21,8 +21,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from torchsph.caps import settle  # noqa: E402
-from torchsph.config import load_case  # noqa: E402
+from torchsph.post.caps import settle  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
 
 
 def main():

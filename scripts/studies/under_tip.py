@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from torchsph import post  # noqa: E402
-from torchsph.io import read_snapshot  # noqa: E402
-from torchsph.post import WIRE  # noqa: E402
-from torchsph.state import Phase  # noqa: E402
+from torchsph.post import analysis as post  # noqa: E402
+from torchsph.io.snapshots import read_snapshot  # noqa: E402
+from torchsph.post.analysis import WIRE  # noqa: E402
+from torchsph.core.state import Phase  # noqa: E402
 
 
 def under_tip(run: Path, t_from: float = 0.1) -> dict:

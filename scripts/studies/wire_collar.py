@@ -27,11 +27,11 @@ import h5py
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from torchsph.beam import beam_power  # noqa: E402
-from torchsph.deposition import WIRE  # noqa: E402
-from torchsph.post import nominal_wire_fed_kg  # noqa: E402
-from torchsph.runner import make_simulation  # noqa: E402
-from torchsph.state import Phase  # noqa: E402
+from torchsph.physics.beam import beam_power  # noqa: E402
+from torchsph.scenes.deposition import WIRE  # noqa: E402
+from torchsph.post.analysis import nominal_wire_fed_kg  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.core.state import Phase  # noqa: E402
 
 
 def _feed_record(run: Path, cfg: dict) -> list[tuple[float, float, float]]:

@@ -18,10 +18,10 @@ sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402
 
-from torchsph import checkpoint as ckpt  # noqa: E402
-from torchsph.io import read_snapshot  # noqa: E402
-from torchsph.runner import make_simulation  # noqa: E402
-from torchsph.state import ParticleState, Phase  # noqa: E402
+from torchsph.io import checkpoint as ckpt  # noqa: E402
+from torchsph.io.snapshots import read_snapshot  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.core.state import ParticleState, Phase  # noqa: E402
 
 
 def main():

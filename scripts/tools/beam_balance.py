@@ -5,7 +5,7 @@
 
 Each combination of case, spacing (mm), wire-tip height (mm), wire diameter (mm) and source count
 is built on a substrate that covers every spot (8 x 6 x 2.5 mm, a 3 mm wire), and each source's
-traced power (:func:`torchsph.beam.beam_power`, all particles material) is compared with eta0 Q0, and
+traced power (:func:`torchsph.physics.beam.beam_power`, all particles material) is compared with eta0 Q0, and
 the sources traced together in one plan, as the solver does, with their sum.
 A substrate under a wire on its own lattice is the case where bins left empty by round-off lost
 power (up to -22 % of a source before the fix of the beam's holes). Prints the combinations off
@@ -20,9 +20,9 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from torchsph.beam import beam_power, beams_power  # noqa: E402
-from torchsph.config import load_case  # noqa: E402
-from torchsph.runner import make_simulation  # noqa: E402
+from torchsph.physics.beam import beam_power, beams_power  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
 
 
 def main():

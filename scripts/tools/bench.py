@@ -23,9 +23,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from torchsph.config import load_case  # noqa: E402
-from torchsph.runner import make_simulation, run_steps  # noqa: E402
-from torchsph.analytic import taylor_green_exact  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.step.loop import run_steps
+from torchsph.core.analytic import taylor_green_exact  # noqa: E402
 
 CASE = Path(__file__).resolve().parents[2] / "cases" / "taylor_green_2d"
 
@@ -63,8 +64,8 @@ def run_tg(nx, dtype, device, t_end, compile, overrides=()):
 
 def run_conduction(nx, dtype, device, compile):
     """1-D transient conduction (cases/conduction_1d): L2 error / (T_face - T0) vs erfc."""
-    from torchsph.analytic import conduction_1d_exact
-    from torchsph.state import Phase
+    from torchsph.core.analytic import conduction_1d_exact
+    from torchsph.core.state import Phase
 
     _, cfg = load_case(CASE.parent / "conduction_1d", [f"scene.nx={nx}"])
     t0 = time.perf_counter()

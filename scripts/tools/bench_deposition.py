@@ -25,7 +25,7 @@ elsewhere on the machine moves single rounds by up to 30 %.
 Columns: ms per step over the timed steps (rebuilds included), the median plain step, the
 extra cost of a step that rebuilds the neighbour list (all of them, then split into those that kept
 the active set and those that refreshed it, as the heated zone reached its edge), particle-steps/s, the process's peak
-RSS, host synchronisations per step (without and with a rebuild; :mod:`torchsph.syncs`), and
+RSS, host synchronisations per step (without and with a rebuild; :mod:`torchsph.core.syncs`), and
 the reference's time over this code's.
 """
 from __future__ import annotations
@@ -62,7 +62,8 @@ def same_model(tree: Path) -> list[str]:
     """--set arguments that put a tree on the reference's physics: a version with the wetting
     model runs these comparisons without it (the thesis's c = 1 in melt and solid, as b14e316),
     and one whose case names [solid_contact] without that term (b14e316 has none)."""
-    has = '"wetting": Key(' in (tree / "torchsph" / "config.py").read_text()
+    config = next(p for p in (tree / "torchsph" / "io" / "config.py", tree / "torchsph" / "config.py") if p.exists())
+    has = '"wetting": Key(' in config.read_text()
     contact = "[solid_contact]" in (tree / "cases" / "perpendicular_350W" / "case.toml").read_text()
     return (["--set", "surface.wetting=false"] if has else []) + (["--set", "solid_contact.enabled=false"] if contact else [])
 

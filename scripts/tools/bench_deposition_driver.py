@@ -7,7 +7,7 @@ tree ``--tree`` (this repository, or a reference commit's worktree). Prints one 
 
 It uses only what every version since b14e316 offers (``load_case``, ``make_simulation``,
 ``simulation_from_run``, ``run_steps``) and counts host synchronisations with this
-repository's :mod:`torchsph.syncs`, loaded by file path (so the reference code is counted
+repository's :mod:`torchsph.core.syncs`, loaded by file path (so the reference code is counted
 the same way). One thread.
 """
 from __future__ import annotations
@@ -28,7 +28,7 @@ HERE = Path(__file__).resolve().parents[2]
 
 
 def load_counter():
-    spec = importlib.util.spec_from_file_location("_bench_syncs", HERE / "torchsph" / "syncs.py")
+    spec = importlib.util.spec_from_file_location("_bench_syncs", HERE / "torchsph" / "core" / "syncs.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod.SyncCounter
@@ -100,10 +100,11 @@ def main():
     import torch
 
     torch.set_num_threads(1)
-    from torchsph.config import load_case
-    from torchsph.runner import make_simulation, run_steps, simulation_from_run
+    from torchsph.io.config import load_case
+    from torchsph.run.build import make_simulation, simulation_from_run
+    from torchsph.step.loop import run_steps
 
-    from torchsph import runner
+    from torchsph.run import runner
     # each tree steps in the mode its CLI runs in (this code: inference mode, runner.STEP_MODE)
     with getattr(runner, "STEP_MODE", contextlib.nullcontext)():
         Counter = load_counter()
@@ -116,7 +117,7 @@ def main():
             else:
                 (getattr(sim, "refresh_pairs", None) or getattr(sim, "_refresh_pairs"))(force=True)
         else:
-            from torchsph.config import SURFACE  # the reference's physics: no wetting model (as b14e316)
+            from torchsph.io.config import SURFACE  # the reference's physics: no wetting model (as b14e316)
             case = a.tree / "cases" / "perpendicular_350W"
             ov = (["surface.wetting=false"] if "wetting" in SURFACE else []) + (
                 ["solid_contact.enabled=false"] if "[solid_contact]" in (case / "case.toml").read_text() else [])

@@ -3,7 +3,7 @@
     python scripts/tools/compiled_step.py CHECKPOINT [--backend inductor] [--mode reduce-overhead] [--steps 200]
 
 ``torch.compile(fullgraph=True, dynamic=True)`` of the step's three traced parts
-(:mod:`torchsph.step`: ``first_half``, ``close_momentum``, ``close_energy``), then ``--steps``
+(:mod:`torchsph.step.integrator`: ``first_half``, ``close_momentum``, ``close_energy``), then ``--steps``
 timed steps after 5 warm-up steps (which compile), against the same steps eager in a second
 simulation from the same checkpoint. Prints ms per step, the median plain step and the mean
 rebuild step of each. On a GPU, ``--mode reduce-overhead`` captures the parts as CUDA graphs.
@@ -21,8 +21,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_deposition_driver import timed_steps  # noqa: E402
-from torchsph import step  # noqa: E402
-from torchsph.runner import run_steps, simulation_from_run  # noqa: E402
+from torchsph.step import integrator as step  # noqa: E402
+from torchsph.step.loop import run_steps  # noqa: E402
+from torchsph.run.build import simulation_from_run
 
 PARTS = ("first_half", "close_momentum", "close_energy")
 

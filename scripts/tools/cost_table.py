@@ -28,9 +28,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from torchsph.config import load_case  # noqa: E402
-from torchsph.progress import GB, hms  # noqa: E402
-from torchsph.runner import run_case  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.run.progress import GB, hms  # noqa: E402
+from torchsph.run.runner import run_case  # noqa: E402
 
 
 def estimate(case: Path, preview: bool) -> dict:

@@ -22,8 +22,9 @@ from pathlib import Path
 from torch.profiler import ProfilerActivity, profile
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from torchsph.config import load_case  # noqa: E402
-from torchsph.runner import make_simulation, run_steps  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.step.loop import run_steps
 
 
 def main():
@@ -35,7 +36,7 @@ def main():
     ap.add_argument("--restart", type=Path, default=None, metavar="CHECKPOINT")
     a = ap.parse_args()
     if a.restart is not None:
-        from torchsph.runner import simulation_from_run
+        from torchsph.run.build import simulation_from_run
         import tomllib  # (--set numerics.KEY=VALUE: the step-control keys a restart may change)
         nm = {o.split("=", 1)[0].removeprefix("numerics."): tomllib.loads("v = " + o.split("=", 1)[1])["v"]
               for o in a.overrides}

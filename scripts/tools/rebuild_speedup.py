@@ -21,7 +21,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from torchsph.runner import run_steps, simulation_from_run  # noqa: E402
+from torchsph.step.loop import run_steps  # noqa: E402
+from torchsph.run.build import simulation_from_run
 
 
 def run(run_dir: Path, steps: int, partial: bool):

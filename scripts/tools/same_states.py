@@ -28,8 +28,9 @@ def run(out: Path):
     torch.set_num_threads(1)
     root = Path.cwd()
     sys.path.insert(0, str(root))
-    from torchsph.config import load_case
-    from torchsph.runner import make_simulation, run_steps
+    from torchsph.io.config import load_case
+    from torchsph.run.build import make_simulation
+    from torchsph.step.loop import run_steps
 
     arrays = {}
     for name, preview, steps in CASES:

@@ -25,7 +25,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from torchsph.io import read_snapshot  # noqa: E402
+from torchsph.io.snapshots import read_snapshot  # noqa: E402
 
 
 def measures(out: Path) -> dict:
@@ -38,7 +38,7 @@ def measures(out: Path) -> dict:
     ck = out / "checkpoint.pt"
     if ck.exists():
         import torch
-        from torchsph.checkpoint import read, state_arrays
+        from torchsph.io.checkpoint import read, state_arrays
         mass = state_arrays(read(ck))
         order = torch.argsort(mass["id"])
         mass = mass["m"][order].numpy()

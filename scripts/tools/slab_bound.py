@@ -8,7 +8,7 @@ is weighted as the decomposition's load balance weighs it: fluid 4, working (act
 idle solid 0 (the step does not touch it). For a cut at c, rank 0 computes what lies below
 c + halo and rank 1 what lies above c - halo (ghosts are computed as owned rows are); the
 bound is the total work over the larger side at the best c, before any communication. The
-case's own halo (``parallel.slab.halo_parts``) is always one of the rows.
+case's own halo (``parallel.setup.halo_parts``) is always one of the rows.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from torchsph.checkpoint import arrays_of, load, state_arrays  # noqa: E402
+from torchsph.io.checkpoint import arrays_of, load, state_arrays  # noqa: E402
 
 
 def best_cut(x: np.ndarray, w: np.ndarray, halo: float, cuts: int = 800):
@@ -45,7 +45,7 @@ def main():
     a = ap.parse_args()
     d = load(a.checkpoint)
     cfg = json.loads((a.checkpoint.parent / "config.json").read_text())
-    from parallel.slab import halo_parts
+    from parallel.setup import halo_parts
 
     own = halo_parts(cfg)["halo"]
     st, arrays = state_arrays(d), arrays_of(d)

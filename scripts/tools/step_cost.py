@@ -25,11 +25,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph.__main__ import mpi_size  # noqa: E402
-from torchsph.config import load_case  # noqa: E402
-from torchsph.runner import STEP_MODE, SerialRun, make_simulation, run_steps  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.run.runner import STEP_MODE, SerialRun  # noqa: E402
+from torchsph.run.build import make_simulation
+from torchsph.step.loop import run_steps
 
 
-@STEP_MODE()  # as a run of the CLI steps (torchsph.runner.run_case)
+@STEP_MODE()  # as a run of the CLI steps (torchsph.run.runner.run_case)
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("case")
@@ -51,7 +53,7 @@ def main():
     comm = procs = None
     if mpi_size() > 1:
         from parallel.run import SlabRun
-        from parallel.slab import install_abort_hook
+        from parallel.setup import install_abort_hook
         install_abort_hook()
         procs = SlabRun(cfg)
         comm = procs.comm
@@ -88,7 +90,7 @@ def main():
             print(f"{row['t_ms']:7.2f} {row['steps']:6d} {row['ms_per_step']:8.1f} {row['rebuilds']:8d} "
                   f"{n_act:8d} {n_work:8d}", flush=True)
     if a.checkpoint is not None:
-        from torchsph import checkpoint as ckpt
+        from torchsph.io import checkpoint as ckpt
         args = (sim, a.checkpoint, ckpt.config_hash(cfg), {}, ckpt.physics(cfg))
         if comm is None:
             SerialRun().save(*args)
@@ -96,7 +98,7 @@ def main():
             from parallel.run import save_global
             save_global(*args[:1], comm, *args[1:])
         if root:  # the case beside it, as a run's (what --restart reads)
-            from torchsph import io as sio
+            from torchsph.io import snapshots as sio
             sio.write_json(a.checkpoint.parent / "config.json", {"case": str(a.case), **cfg})
     if root:
         total = sum(r["wall_s"] for r in rows)

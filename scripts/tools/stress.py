@@ -17,9 +17,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from torchsph.config import load_case  # noqa: E402
-from torchsph.runner import make_simulation, run_steps  # noqa: E402
-from torchsph.simulation import SimulationError  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.step.loop import run_steps
+from torchsph.step.simulation import SimulationError  # noqa: E402
 
 
 def attempt(case, over, t_end=None, steps=None):

@@ -22,10 +22,11 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from torchsph.fluid import continuity_pairs, pair_geometry  # noqa: E402
-from torchsph.limits import SimulationError  # noqa: E402
-from torchsph.runner import run_steps, simulation_from_run  # noqa: E402
-from torchsph.state import Phase  # noqa: E402
+from torchsph.physics.fluid import continuity_pairs, pair_geometry  # noqa: E402
+from torchsph.step.limits import SimulationError  # noqa: E402
+from torchsph.step.loop import run_steps  # noqa: E402
+from torchsph.run.build import simulation_from_run
+from torchsph.core.state import Phase  # noqa: E402
 
 
 def report(sim, pid: int) -> str | None:

@@ -17,10 +17,11 @@ import torch
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from torchsph.config import load_case  # noqa: E402
-from torchsph.kernels import KERNELS, make_kernel  # noqa: E402
-from torchsph.runner import make_simulation, run_steps  # noqa: E402
-from torchsph.analytic import poiseuille_exact, taylor_green_exact  # noqa: E402
+from torchsph.io.config import load_case  # noqa: E402
+from torchsph.core.kernels import KERNELS, make_kernel  # noqa: E402
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.step.loop import run_steps
+from torchsph.core.analytic import poiseuille_exact, taylor_green_exact  # noqa: E402
 
 
 def case(name, *ov):
@@ -68,8 +69,8 @@ def tank():
 
 
 def conduction():
-    from torchsph.analytic import conduction_1d_exact
-    from torchsph.state import Phase
+    from torchsph.core.analytic import conduction_1d_exact
+    from torchsph.core.state import Phase
 
     errs = []
     nxs = [25, 50, 100, 200]
@@ -86,7 +87,7 @@ def conduction():
 
 
 def bump():
-    from torchsph.analytic import gaussian_bump_exact
+    from torchsph.core.analytic import gaussian_bump_exact
 
     scene, sim = case("gaussian_bump_3d")
     run_steps(sim, t_end=0.004)
@@ -99,8 +100,8 @@ def bump():
 
 
 def stefan():
-    from torchsph.state import Phase
-    from torchsph.analytic import melt_front, neumann_lambda
+    from torchsph.core.state import Phase
+    from torchsph.core.analytic import melt_front, neumann_lambda
 
     scene, sim = case("stefan_1d")
     run_steps(sim, t_end=0.5)
@@ -114,8 +115,8 @@ def stefan():
 
 
 def beams():
-    from torchsph.beam import Beam, beam_power, gaussian_fraction_in_strip
-    from torchsph.scenes import lattice
+    from torchsph.physics.beam import Beam, beam_power, gaussian_fraction_in_strip
+    from torchsph.scenes.builders import lattice
 
     def plate(n, dx, tilt):
         x = lattice((n, 80, 5), dx, origin=(-n * dx / 2, -80 * dx / 2, -5 * dx), dtype=torch.float64)
@@ -143,8 +144,7 @@ def beams():
 
 
 def radiation():
-    from torchsph.thermal import SIGMA_SB
-
+    from torchsph.physics.losses import SIGMA_SB
     scene, sim = case("radiating_slab", "scene.dx_m=0.2e-3", "run.t_end_s=0.5")
     s = sim.state
     M, A = float(s.m.sum()), 2 * 1.2e-3 * 1.2e-3
@@ -168,7 +168,7 @@ def balance():
 
 
 def heating():
-    from torchsph.analytic import box_source_rise
+    from torchsph.core.analytic import box_source_rise
 
     errs = []
     for dx in ("0.2e-3", "0.1e-3"):
@@ -189,7 +189,7 @@ def bump_window():
     """The conduction window (numerics.conduction_window = 0.25) on the bump with dt held at a 40th of
     the thermal limit (as the melt's acoustic step holds the deposition's solid), against the exact
     solution and against every-step conduction (tests/test_thermal.py)."""
-    from torchsph.analytic import gaussian_bump_exact
+    from torchsph.core.analytic import gaussian_bump_exact
 
     out = {}
     for w in (0.0, 0.25):

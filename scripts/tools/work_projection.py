@@ -3,12 +3,12 @@
     python scripts/tools/work_projection.py COARSE_RUN_DIR [--dx 0.1e-3] [--every 5]
         [--cost-a MS --cost-b MS_PER_1000] [--steps-per-ms 566]
 
-The active set (``torchsph.active``) is the heated zone (|T - ambient| > the case's
+The active set (``torchsph.step.active``) is the heated zone (|T - ambient| > the case's
 ``active_tolerance_K``, or melt) grown by margins of the kernel support and the Verlet
 skin. Where heat has diffused (a 1 K rise), the temperature field is set by conduction over
 millimetres and hardly depends on the resolution; the margins do (3.5 dx). So the coarse
 run's snapshots give the fine run's sets: each snapshot's seeds are grown with the *fine*
-resolution's radii (`torchsph.active.dilate` on the coarse particles), and the counts are
+resolution's radii (`torchsph.step.active.dilate` on the coarse particles), and the counts are
 scaled by (dx_coarse / dx_fine)^3 (particles per volume).
 
 With a cost model ``ms/step = a + b * work / 1000`` (``--cost-a``, ``--cost-b``, measured on
@@ -26,11 +26,11 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from torchsph.active import dilate  # noqa: E402
-from torchsph.io import read_snapshot  # noqa: E402
-from torchsph.kernels import make_kernel  # noqa: E402
-from torchsph.post import load_run  # noqa: E402
-from torchsph.state import Phase  # noqa: E402
+from torchsph.step.active import dilate  # noqa: E402
+from torchsph.io.snapshots import read_snapshot  # noqa: E402
+from torchsph.core.kernels import make_kernel  # noqa: E402
+from torchsph.post.analysis import load_run  # noqa: E402
+from torchsph.core.state import Phase  # noqa: E402
 
 
 def fine_sets(snap: dict, tol: float, ambient: float, support: float, search: float) -> tuple[int, int, int]:
