@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from torchsph.post import analysis as post
+from torchsph.post import pictures, solidification
 
 DX = 1.0e-4
 TL = 1753.15
@@ -120,7 +121,7 @@ def test_solidification_data_and_exaca_csv(tmp_path):
     for k in range(80):
         t = 1e-3 * k
         snaps.append(snap_of(x, T=T0 + G * x[:, 0] - c * t, t=t))
-    sol = post.solidification(snaps, TL, DX)
+    sol = solidification.solidification(snaps, TL, DX)
     assert sol["id"].size == x.shape[0]
     order = np.argsort(sol["id"])
     exact_tl = (T0 + G * x[:, 0] - TL) / c
@@ -129,7 +130,7 @@ def test_solidification_data_and_exaca_csv(tmp_path):
     assert np.allclose(sol["G"], G, rtol=1e-6)
     assert np.allclose(sol["R"], c / G, rtol=1e-6)
     assert np.all(sol["tm"] == 0.0)  # liquid from the start: melting time = first snapshot
-    n = post.write_exaca_csv(tmp_path / "e.csv", sol, DX)
+    n = solidification.write_exaca_csv(tmp_path / "e.csv", sol, DX)
     lines = (tmp_path / "e.csv").read_text().splitlines()
     assert lines[0] == "x,y,z,tm,tl,cr" and len(lines) == n + 1 == x.shape[0] + 1
     row = np.array(lines[1].split(","), float)
@@ -143,8 +144,8 @@ def test_render_png(tmp_path):
     s = snap_of(x, T=300 + 1e6 * x[:, 0], phase=np.where(x[:, 0] > 5e-4, 0, 2))
     s["velocity"][:, 1] = 0.1
     try:
-        post.render(s, tmp_path / "t.png", what="temperature", window=(200, 150))
-        post.render(s, tmp_path / "v.png", what="velocity", window=(200, 150))
+        pictures.render(s, tmp_path / "t.png", what="temperature", window=(200, 150))
+        pictures.render(s, tmp_path / "v.png", what="velocity", window=(200, 150))
     except Exception as e:  # noqa: BLE001 - VTK raises various errors without an OpenGL context
         pytest.skip(f"VTK could not render off-screen here: {e}")
     for f in ("t.png", "v.png"):
@@ -181,7 +182,7 @@ def test_pyvista_sections_show_the_fusion_zone(tmp_path):
     cfg = cfg_of([2e-3, 3e-3, 1e-3])
     fused, cold = snap_of(x, Tp=Tp), snap_of(x, Tp=np.full(x.shape[0], 500.0))
     try:
-        nums = post.render_sections([(fused, cfg, "fused"), (cold, cfg, "cold")], 1.0e-3, tmp_path / "s.png",
+        nums = pictures.render_sections([(fused, cfg, "fused"), (cold, cfg, "cold")], 1.0e-3, tmp_path / "s.png",
                                     panel=(240, 160))
     except Exception as e:  # noqa: BLE001 - VTK raises various errors without an OpenGL context
         pytest.skip(f"VTK could not render off-screen here: {e}")
@@ -270,12 +271,12 @@ def test_pictures_frame_the_melt_and_say_when_there_is_none(tmp_path):
     s = snap_of(x, T=np.full(len(x), 300.0), phase=np.full(len(x), 2))
     s["peak_temperature"] = np.where(x[:, 0] < 3e-4, 2000.0, 300.0)
     cfg = {"thermal": {"liquidus_K": 1753.0}}
-    lo, hi = post.focus_box(s, cfg, pad_m=1e-4)
+    lo, hi = pictures.focus_box(s, cfg, pad_m=1e-4)
     assert hi[0] == pytest.approx(x[x[:, 0] < 3e-4, 0].max() + 1e-4) and lo[0] == pytest.approx(x[:, 0].min() - 1e-4)
-    assert post.focus_box(s, {"thermal": {"liquidus_K": 3000.0}}) is None  # nothing melted: frame everything
+    assert pictures.focus_box(s, {"thermal": {"liquidus_K": 3000.0}}) is None  # nothing melted: frame everything
     pytest.importorskip("pyvista")
     try:
-        drawn = post.render(s, tmp_path / "v.png", cfg, what="velocity", window=(200, 150))
+        drawn = pictures.render(s, tmp_path / "v.png", cfg, what="velocity", window=(200, 150))
     except Exception as e:  # noqa: BLE001 - VTK raises various errors without an OpenGL context
         pytest.skip(f"VTK could not render off-screen here: {e}")
     assert drawn is False and not (tmp_path / "v.png").exists()

@@ -28,7 +28,7 @@ import torch  # noqa: E402
 from torchsph.post.caps import contact_angle  # noqa: E402
 from torchsph.io.config import load_case  # noqa: E402
 from torchsph.run.build import make_simulation  # noqa: E402
-from torchsph.step.loop import run_steps
+from torchsph.step.loop import run_steps  # noqa: E402
 from torchsph.core.state import Phase  # noqa: E402
 
 

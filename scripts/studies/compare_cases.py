@@ -27,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.post import analysis as post  # noqa: E402
+from torchsph.post import pictures  # noqa: E402
 from torchsph.io.snapshots import read_snapshot  # noqa: E402
 
 CASES = ["along_250W", "along_300W", "along_350W", "perpendicular_350W"]
@@ -150,7 +151,7 @@ def main():
         for r, row in zip(runs, rows):
             cfg, snap = snapshot_at(r, a.time)
             shown.append((snap, cfg, f"{row['case']} ({row['power_W']:.0f} W, {row['layout']}, dx {row['dx_mm']:.2f} mm)"))
-        post.render_sections(shown, x0, a.out.with_name(a.out.name + "_sections3d.png"))
+        pictures.render_sections(shown, x0, a.out.with_name(a.out.name + "_sections3d.png"))
     with open(a.out.with_suffix(".csv"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()

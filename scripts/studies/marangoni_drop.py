@@ -21,7 +21,7 @@ import torch  # noqa: E402
 
 from torchsph.io.config import load_case  # noqa: E402
 from torchsph.run.build import make_simulation  # noqa: E402
-from torchsph.step.loop import run_steps
+from torchsph.step.loop import run_steps  # noqa: E402
 
 
 def profile(s, dx, c, edges):

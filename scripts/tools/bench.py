@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from torchsph.io.config import load_case  # noqa: E402
 from torchsph.run.build import make_simulation  # noqa: E402
-from torchsph.step.loop import run_steps
+from torchsph.step.loop import run_steps  # noqa: E402
 from torchsph.core.analytic import taylor_green_exact  # noqa: E402
 
 CASE = Path(__file__).resolve().parents[2] / "cases" / "taylor_green_2d"

@@ -100,11 +100,16 @@ def main():
     import torch
 
     torch.set_num_threads(1)
-    from torchsph.io.config import load_case
-    from torchsph.run.build import make_simulation, simulation_from_run
-    from torchsph.step.loop import run_steps
+    try:  # this layout (torchsph/io, run, step), or a commit's from before it (a flat torchsph/)
+        from torchsph.io.config import SURFACE, load_case
+        from torchsph.run import runner
+        from torchsph.run.build import make_simulation, simulation_from_run
+        from torchsph.step.loop import run_steps
+    except ImportError:
+        from torchsph import runner
+        from torchsph.config import SURFACE, load_case
+        from torchsph.runner import make_simulation, run_steps, simulation_from_run
 
-    from torchsph.run import runner
     # each tree steps in the mode its CLI runs in (this code: inference mode, runner.STEP_MODE)
     with getattr(runner, "STEP_MODE", contextlib.nullcontext)():
         Counter = load_counter()
@@ -117,7 +122,7 @@ def main():
             else:
                 (getattr(sim, "refresh_pairs", None) or getattr(sim, "_refresh_pairs"))(force=True)
         else:
-            from torchsph.io.config import SURFACE  # the reference's physics: no wetting model (as b14e316)
+            # the reference's physics: no wetting model (as b14e316)
             case = a.tree / "cases" / "perpendicular_350W"
             ov = (["surface.wetting=false"] if "wetting" in SURFACE else []) + (
                 ["solid_contact.enabled=false"] if "[solid_contact]" in (case / "case.toml").read_text() else [])

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_deposition_driver import timed_steps  # noqa: E402
 from torchsph.step import integrator as step  # noqa: E402
 from torchsph.step.loop import run_steps  # noqa: E402
-from torchsph.run.build import simulation_from_run
+from torchsph.run.build import simulation_from_run  # noqa: E402
 
 PARTS = ("first_half", "close_momentum", "close_energy")
 

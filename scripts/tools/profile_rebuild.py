@@ -20,7 +20,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph.step.loop import run_steps  # noqa: E402
-from torchsph.run.build import simulation_from_run
+from torchsph.run.build import simulation_from_run  # noqa: E402
 
 
 def main():

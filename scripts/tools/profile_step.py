@@ -24,7 +24,7 @@ from torch.profiler import ProfilerActivity, profile
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph.io.config import load_case  # noqa: E402
 from torchsph.run.build import make_simulation  # noqa: E402
-from torchsph.step.loop import run_steps
+from torchsph.step.loop import run_steps  # noqa: E402
 
 
 def main():

@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from torchsph.step.loop import run_steps  # noqa: E402
-from torchsph.run.build import simulation_from_run
+from torchsph.run.build import simulation_from_run  # noqa: E402
 
 
 def run(run_dir: Path, steps: int, partial: bool):

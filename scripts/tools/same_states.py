@@ -28,9 +28,13 @@ def run(out: Path):
     torch.set_num_threads(1)
     root = Path.cwd()
     sys.path.insert(0, str(root))
-    from torchsph.io.config import load_case
-    from torchsph.run.build import make_simulation
-    from torchsph.step.loop import run_steps
+    try:  # this layout (torchsph/io, run, step), or a commit's from before it (a flat torchsph/)
+        from torchsph.io.config import load_case
+        from torchsph.run.build import make_simulation
+        from torchsph.step.loop import run_steps
+    except ImportError:
+        from torchsph.config import load_case
+        from torchsph.runner import make_simulation, run_steps
 
     arrays = {}
     for name, preview, steps in CASES:

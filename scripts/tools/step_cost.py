@@ -27,8 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from torchsph.__main__ import mpi_size  # noqa: E402
 from torchsph.io.config import load_case  # noqa: E402
 from torchsph.run.runner import STEP_MODE, SerialRun  # noqa: E402
-from torchsph.run.build import make_simulation
-from torchsph.step.loop import run_steps
+from torchsph.run.build import make_simulation  # noqa: E402
+from torchsph.step.loop import run_steps  # noqa: E402
 
 
 @STEP_MODE()  # as a run of the CLI steps (torchsph.run.runner.run_case)

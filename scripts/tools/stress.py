@@ -19,7 +19,7 @@ sys.path.insert(0, str(ROOT))
 
 from torchsph.io.config import load_case  # noqa: E402
 from torchsph.run.build import make_simulation  # noqa: E402
-from torchsph.step.loop import run_steps
+from torchsph.step.loop import run_steps  # noqa: E402
 from torchsph.step.simulation import SimulationError  # noqa: E402
 
 

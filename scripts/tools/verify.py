@@ -20,7 +20,7 @@ sys.path.insert(0, str(ROOT))
 from torchsph.io.config import load_case  # noqa: E402
 from torchsph.core.kernels import KERNELS, make_kernel  # noqa: E402
 from torchsph.run.build import make_simulation  # noqa: E402
-from torchsph.step.loop import run_steps
+from torchsph.step.loop import run_steps  # noqa: E402
 from torchsph.core.analytic import poiseuille_exact, taylor_green_exact  # noqa: E402
 
 
