@@ -38,11 +38,13 @@ def _np(t: torch.Tensor) -> np.ndarray:
 class _TimedComm:
     """An mpi4py communicator whose calls add their wall time to ``waited``: the time a
     rank spends in communication (mostly waiting for slower ranks) is told apart from its
-    own work, so the load imbalance is measured on the work."""
+    own work, so the load imbalance is measured on the work; ``sent`` counts the array bytes
+    this rank handed to them (what leaves the rank: an alltoall's own entry is not counted)."""
 
     def __init__(self, comm):
         self._c = comm
         self.waited = 0.0
+        self.sent = 0
 
     def __getattr__(self, name):
         f = getattr(self._c, name)
@@ -51,11 +53,27 @@ class _TimedComm:
 
         def timed(*a, **k):
             t = time.perf_counter()
+            if a:
+                self.sent += _payload_bytes(a[0], self._c.Get_rank() if name == "alltoall" else None)
             try:
                 return f(*a, **k)
             finally:
                 self.waited += time.perf_counter() - t
         return timed
+
+
+def _payload_bytes(obj, skip: int | None = None) -> int:
+    """The array bytes in a message (numpy arrays in dicts, lists and tuples; ``skip``: the
+    entry of an alltoall list that stays on this rank)."""
+    if isinstance(obj, np.ndarray):
+        return obj.nbytes
+    if isinstance(obj, torch.Tensor):
+        return obj.numel() * obj.element_size()
+    if isinstance(obj, dict):
+        return sum(_payload_bytes(v) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(_payload_bytes(v) for i, v in enumerate(obj) if i != skip)
+    return 0
 
 
 def equal_bounds(comm, size: int, x: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
