@@ -5,6 +5,10 @@ rho0 = 1, c0 = 10 U, lattice start, t_end = 1, nx in {50, 100, 200}.
     python scripts/tools/bench.py            # all rows, float64 and float32 (CUDA rows when present)
     python scripts/tools/bench.py --quick    # nx = 50 only
     python scripts/tools/bench.py --deposition [--ref b14e316]   # the deposition step against a commit
+    python scripts/tools/bench.py --deposition --mpi [--mpi-steps N] [--developed CK] [--case DIR] [--set k=v]
+        # one process on 1 thread, on 2 threads, and 2 ranks of 1 thread (scripts/tools/bench_mpi.py):
+        # ms/step, the speed-ups, owned and ghost particles per rank, halo, bytes sent per step,
+        # imbalance; on the case's first steps and, with --developed, from that checkpoint
 
 linf = |max|u|(t_end) / (U exp(-8 pi^2 t / Re)) - 1|;
 L1 = mean | |u_i| - |u_exact(x_i)| | / mean |u_exact(x_i)|.
@@ -103,7 +107,15 @@ def main(argv=None):
     ap.add_argument("--states", nargs="*", default=["preview", "full", "developed"], choices=("preview", "full", "developed"))
     ap.add_argument("--t-developed", type=float, default=0.003,
                     help="--deposition: the full scene's developed state, run to this time by the reference (s)")
+    ap.add_argument("--mpi", action="store_true", help="--deposition: one process against 2 ranks")
+    ap.add_argument("--mpi-steps", type=int, default=200,
+                    help="--mpi: timed steps (~566 a ms of process in the full scene: 5700 for its first 10 ms)")
+    ap.add_argument("--developed", type=Path, default=None, help="--mpi: a checkpoint of the case to time from too")
+    ap.add_argument("--case", type=Path, default=Path(__file__).resolve().parents[2] / "cases" / "perpendicular_350W")
     a = ap.parse_args(argv)
+    if a.deposition and a.mpi:
+        mpi_table(a)
+        return
     if a.deposition:
         from bench_deposition import run
 
@@ -125,6 +137,43 @@ def main(argv=None):
                 r = run_conduction(nx, getattr(torch, dt), device, False)
                 print(f"| {device} | {dt} | {r['nx']} | {r['N']} | {r['steps']} | {r['wall']:.2f} | "
                       f"{r['setup']:.2f} | {r['pss']:.3g} | {r['l2']:.5f} |", flush=True)
+
+
+def mpi_table(a):
+    """``--deposition --mpi``: scripts/tools/bench_mpi.py in three configurations per state."""
+    import json
+    import os
+    import shutil
+    import subprocess
+
+    here = Path(__file__).resolve().parent
+    mpiexec = shutil.which("mpiexec", path=str(Path(sys.executable).parent)) or shutil.which("mpiexec")
+    sets = [x for s in a.overrides for x in ("--set", s)]
+    states = [("first steps", [])] + ([(f"from {a.developed}", ["--restart", str(a.developed)])] if a.developed else [])
+    print(f"# {a.case.name}: {a.mpi_steps} timed steps after 5 of warm-up; wall ms per step (the slowest rank)")
+    print("| state | run | ms/step | speed-up | particles | owned per rank | ghosts per rank | halo mm | "
+          "MB sent per step per rank | imbalance |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for state, extra in states:
+        base = None
+        for name, ranks, threads in (("1 process, 1 thread", 1, 1), ("1 process, 2 threads", 1, 2),
+                                     ("2 ranks, 1 thread each", 2, 1)):
+            cmd = ([mpiexec, "-n", str(ranks)] if ranks > 1 else []) + [
+                sys.executable, str(here / "bench_mpi.py"), str(a.case), "--steps", str(a.mpi_steps)] + extra + sets
+            env = {**os.environ, "OMP_NUM_THREADS": str(threads)}  # (torch takes its threads from it)
+            r = subprocess.run(cmd, env=env, capture_output=True, text=True)
+            if r.returncode != 0:
+                print(f"| {state} | {name} | failed: {r.stderr.strip().splitlines()[-1] if r.stderr.strip() else r.returncode} "
+                      "| | | | | | | |", flush=True)
+                continue
+            d = json.loads(r.stdout.strip().splitlines()[-1])
+            base = d["ms_per_step"] if base is None else base
+            pr = d["per_rank"]
+            owned = ", ".join(str(p["owned"]) for p in pr)
+            ghosts = ", ".join(str(p["ghosts"]) for p in pr)
+            sent = ", ".join(f"{p['sent_bytes_per_step'] / 1e6:.2f}" for p in pr)
+            print(f"| {state} | {name} | {d['ms_per_step']:.1f} | {base / d['ms_per_step']:.2f} | {d['particles']} | "
+                  f"{owned} | {ghosts} | {1e3 * d['halo_m']:.2f} | {sent} | {d['imbalance']:.2f} |", flush=True)
 
 
 def taylor_green_table(a, nxs, devices, compile):
