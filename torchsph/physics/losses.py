@@ -110,9 +110,12 @@ def surface_area(th, state: ParticleState) -> torch.Tensor:
     sub, prev = th.rows_to_compute("area")
     rows, nb = rows_and_table(th, sub)
     want, th.area_want = th.area_want, None
+    g = None
     if want is not None and want[0] is th.area_prev and want[1] is th.area_ok:  # the rows asked for
         g = th.colour.of(state, "area")
-    else:
+        if g.shape[0] != rows.numel():  # asked for other rows (a decomposed run re-armed since): not these
+            g = None
+    if g is None:
         g = colour_gradient_pairs(state.x, state.m, state.rho, rows, nb, th.kernel, th.h, th.domain)
     th.colour.want("area", None)  # (until the next selection)
     gn = g.norm(dim=-1)
