@@ -119,16 +119,12 @@ def _dataitem(fname: str, name: str, a_shape, dtype) -> str:
             f'Format="HDF">{fname}:/{name}</DataItem>')
 
 
-def write_xdmf(path: Path, snapshots: list[tuple], float_dtype, datasets: dict | None = None):
+def write_xdmf(path: Path, snapshots: list[tuple], float_dtype, datasets: dict):
     """Temporal collection of Polyvertex grids, one per snapshot (t, file, particle count[,
     the names of its ``[run] fields``]): the count may change between snapshots (a fed wire
     adds particles), and so may the fields (a restart may name others). ``datasets``: the
-    snapshots' :func:`layout` (default: the state's fields): (N,) arrays are scalars, (N, 3)
-    vectors, others matrices."""
+    snapshots' :func:`layout`: (N,) arrays are scalars, (N, 3) vectors, others matrices."""
     fdt = np.dtype(float_dtype)
-    if datasets is None:
-        datasets = {f.dataset: (((3,) if k == "v" else ()), (fdt if f.kind == "float" else
-                                np.dtype(np.int32 if k == "phase" else np.int64)).str) for k, f in FIELDS.items()}
     grids = []
     state = {f.dataset for f in FIELDS.values()}
     for t, fname, n, *more in snapshots:

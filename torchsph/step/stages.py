@@ -62,9 +62,6 @@ class Fields:
     def __getitem__(self, name: str):
         return getattr(self.writer[name], name)
 
-    def __contains__(self, name: str) -> bool:
-        return name in self.writer
-
 
 def evaluate_fields(sim) -> None:
     """Every field-making term's ``evaluate``, in order (the step, once its pairs are selected)."""

@@ -33,7 +33,7 @@ class AnisotropicConduction(Term):
 
     def __init__(self, K, kernel, h: float, k_iso: float, cp: float):
         self.K, self.kernel, self.h = K, kernel, h
-        self.k_iso, self.cp = k_iso, cp
+        self.k_max, self.cp = k_iso + max(float(k) for k in K), cp  # (host numbers: the limit reads none)
 
     @classmethod
     def check(cls, cfg: dict) -> None:
@@ -59,7 +59,7 @@ class AnisotropicConduction(Term):
 
     def limits(self, sim) -> dict:
         rho = sim.state.rho.min()
-        return {"anisotropic_conduction": 0.125 * rho * self.cp * self.h**2 / (self.k_iso + float(self.K.max()))}
+        return {"anisotropic_conduction": 0.125 * rho * self.cp * self.h**2 / self.k_max}
 
     def plan(self) -> str:
         return f"K = {[round(float(k), 6) for k in self.K]} W/(m K)"
